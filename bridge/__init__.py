@@ -1,0 +1,1 @@
+"""The Zenoh bridge (remote brains, the real-robot link): not built yet."""

@@ -1,0 +1,1 @@
+"""Modules shipped with dynabrain: physics cores, signal blocks, sensors, rules."""

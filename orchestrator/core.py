@@ -1,0 +1,169 @@
+"""The physics-core interface, engine-neutral, and the scene of primitives both cores build.
+
+A physics core is a Module with a scene. The kernel speaks only these words; the MuJoCo and Exudyn
+cores translate them to their engines. Structural edits (`make`, `make_joint`, `no_collision`) and
+run-time parameter changes are part of the core's state, so history and rollback restore them.
+
+Ports every core exposes (names are ``<object>.<quantity>``):
+
+- per free body ``B``: outputs ``B.pos`` (3, m), ``B.quat`` (4, w-x-y-z), ``B.linvel`` (3, m/s),
+  ``B.angvel`` (3, rad/s, world frame);
+- per hinge / slide joint ``J``: outputs ``J.q`` (rad or m), ``J.qd``; input ``J.force``
+  (N*m or N, a generalised force added at the joint);
+- engine-specific extras (MuJoCo actuators ``A.ctrl``, sensors ``sensor.S``) where the engine has them.
+
+Run-time parameters every core has: ``friction`` (sliding coefficient, all contacts),
+``restitution`` (coefficient of restitution of contacts, 0..1, mapped so a measured bounce follows
+it), ``gravity`` (3-vector, m/s^2), ``substeps`` (engine steps per module step).
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .module import Capabilities, Module
+
+SHAPES = ("plane", "box", "sphere", "capsule", "cylinder")
+JOINT_KINDS = ("free", "hinge", "slide", "fixed")
+
+COLORS: dict[str, tuple[float, float, float, float]] = {
+    "red": (0.85, 0.15, 0.15, 1.0),
+    "green": (0.2, 0.7, 0.25, 1.0),
+    "blue": (0.15, 0.3, 0.85, 1.0),
+    "yellow": (0.95, 0.85, 0.1, 1.0),
+    "orange": (0.95, 0.55, 0.1, 1.0),
+    "purple": (0.55, 0.25, 0.75, 1.0),
+    "cyan": (0.1, 0.75, 0.85, 1.0),
+    "magenta": (0.85, 0.2, 0.7, 1.0),
+    "white": (0.95, 0.95, 0.95, 1.0),
+    "grey": (0.5, 0.5, 0.5, 1.0),
+    "gray": (0.5, 0.5, 0.5, 1.0),
+    "black": (0.08, 0.08, 0.08, 1.0),
+    "brown": (0.5, 0.3, 0.15, 1.0),
+}
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """How a body is attached to its parent (the world when it has none).
+
+    ``axis`` is in the body frame; ``anchor`` is the joint's position in the body frame.
+    ``range`` limits a hinge (rad) or slide (m).
+    """
+
+    kind: str = "free"
+    name: str | None = None
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    anchor: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    range: tuple[float, float] | None = None
+    damping: float = 0.0
+
+
+@dataclass(frozen=True)
+class BodySpec:
+    """One primitive body of a scene.
+
+    ``size`` by shape: box: full edge lengths (x, y, z); sphere: (radius,); capsule and cylinder:
+    (radius, length along the body z axis); plane: (half-x, half-y) or () for infinite.
+    ``pos`` is in the parent's frame (the world's when ``parent`` is None); ``quat`` is w-x-y-z.
+    A plane is always static; a top-level body without ``joint`` is free.
+    """
+
+    name: str
+    shape: str
+    size: tuple[float, ...]
+    pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    mass: float | None = None
+    color: tuple[float, float, float, float] = COLORS["grey"]
+    joint: JointSpec | None = None
+    parent: str | None = None
+    friction: float | None = None
+    line: int | None = None
+    """Line in the scenario file where the body is written (for errors)."""
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """A scene: primitives, or an engine model file (``model``), plus options."""
+
+    bodies: tuple[BodySpec, ...] = ()
+    model: str | None = None
+    """Path of an engine model file (MJCF for MuJoCo), resolved against the scenario's folder."""
+    options: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BodyInfo:
+    """What a core tells about one body (for viewers, logs and expectation expressions)."""
+
+    name: str
+    free: bool
+    parent: str | None
+    geoms: tuple[dict, ...] = ()
+
+
+class PhysicsCore(Module):
+    """A physics engine as a module with a scene. Not feedthrough: outputs come from its state."""
+
+    CAPABILITIES = Capabilities(can_rollback=True, can_fork=True, feedthrough=False)
+    ENGINE = "abstract"
+
+    def __init__(self, name: str, scene: SceneSpec, **params):
+        self.scene = scene
+        super().__init__(name, **params)
+
+    # -- scene queries ------------------------------------------------------------------------------
+    @abstractmethod
+    def objects(self) -> list[str]:
+        """Names of the selectable objects: top-level bodies (each with its subtree)."""
+
+    @abstractmethod
+    def bodies(self) -> list[str]:
+        """Names of every body."""
+
+    @abstractmethod
+    def joints(self) -> list[str]:
+        """Names of every joint (hinge, slide, free) of the model."""
+
+    @abstractmethod
+    def body_info(self, name: str) -> BodyInfo:
+        """Geometry and attachment of a body."""
+
+    @abstractmethod
+    def body_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """World position (3,) and orientation quaternion (4, w-x-y-z) of a body, now."""
+
+    @abstractmethod
+    def body_velocity(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """World linear (3,) and angular (3,) velocity of a body, now."""
+
+    # -- structural edits (part of the core's state) --------------------------------------------------
+    @property
+    @abstractmethod
+    def selection(self) -> tuple[str, ...]:
+        """The objects being simulated; the others are frozen where they stand (and still drawn)."""
+
+    @abstractmethod
+    def make(self, objects: Sequence[str]) -> None:
+        """Simulate only ``objects``; freeze every other object at its current pose."""
+
+    @abstractmethod
+    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
+        """Join bodies ``a`` and ``b`` rigidly as they stand now; returns the joint's name."""
+
+    @abstractmethod
+    def remove_joint(self, name: str) -> None:
+        """Remove a joint made by `make_joint`."""
+
+    @abstractmethod
+    def no_collision(self, objects: Sequence[str]) -> None:
+        """Turn off contacts among ``objects`` (pairwise, each with its subtree)."""
+
+    @abstractmethod
+    def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
+        """Move a free body to a pose at rest (zero velocity)."""

@@ -1,0 +1,281 @@
+"""The module contract: every simulation function is a Module.
+
+A module keeps configuration and code; everything that changes while the world runs is *state*
+that it can hand out (`get_state`) and take back (`set_state`). The world owns time, the signal bus
+and history; a module only ever sees one step at a time.
+
+Lifecycle (the order the world calls a module in; `check_module` verifies it)::
+
+    m = MyModule("name", **params)     # 1. configuration only: parse and check params, no resources
+    m.inputs(), m.outputs()            # 2. declared ports (may depend on the params, and on the scene
+                                       #    once setup has run, for physics cores)
+    m.setup(ctx)                       # 3. once, when the module joins a world: resolve targets
+                                       #    against the scene, allocate resources, take ctx.rng
+    m.bind()                           # 4. after the world (re)binds the bus: m.inp / m.out are ready;
+                                       #    called again whenever the world's structure changes
+    m.start(t_ns)                      # 5. initial state at the tick the module joins; writes initial
+                                       #    values of every output port
+    loop, at ticks where the module is due (every `period` of its own):
+        m.step(t_ns, dt_ns)            # 6. advance state from t_ns to t_ns + dt_ns: read m.inp[...],
+                                       #    write m.out[...] in place (`m.out["y"][...] = v`)
+        m.get_state()                  # 7. after each tick, for history (only when can_rollback)
+    m.set_state(s)                     #    on rollback / restore, between steps, any number of times
+    m.on_param(name, value)            #    a run-time parameter changed (also when a rollback changes
+                                       #    it back); apply it to whatever depends on it
+    m.close()                          # 8. once, when the world closes (a removed module stays alive
+                                       #    while history may bring it back)
+
+Failure policy: an exception from `setup` or `start` refuses the module (the world is unchanged);
+an exception from `step` (or a `PhysicsDivergedError`) rolls the whole world back to the state at
+the start of the failed tick and is re-raised as `ModuleError` naming the module, call and tick.
+`get_state` must return a value the module will never mutate afterwards (copy arrays); `set_state`
+must copy what it keeps. Randomness comes from `ctx.rng` and its state belongs in `get_state`.
+"""
+
+from __future__ import annotations
+
+import copy
+import types
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from .errors import DynabrainError, UnitError
+from .suggest import did_you_mean
+from .units import parse_quantity
+
+if TYPE_CHECKING:
+    from .core import PhysicsCore
+
+
+@dataclass(frozen=True)
+class Port:
+    """A named, typed slot on the signal bus. Values are float64 arrays of ``shape``.
+
+    ``view_of`` makes this port a view into a block port of the same module:
+    ``("body_pos", 3)`` is row 3 of ``body_pos``. Block ports let a module write many values with
+    one array operation while each still has a name of its own.
+    """
+
+    name: str
+    shape: tuple[int, ...] = ()
+    unit: str = "1"
+    doc: str = ""
+    view_of: tuple[str, int] | None = None
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=np.int64))
+
+
+@dataclass(frozen=True)
+class Param:
+    """A parameter: default value, unit, and whether it may be changed while the world runs.
+
+    ``dimension`` (``"time"``, ``"frequency"``, ``"mass"``, ``"length"``, ...) lets a scenario
+    write the value with a unit (``2Hz``, ``50g``); it is converted to SI.
+    """
+
+    name: str
+    default: Any
+    unit: str = "1"
+    runtime: bool = False
+    doc: str = ""
+    dimension: str | None = None
+
+    def convert(self, value: Any) -> Any:
+        """Turn a scenario value into the parameter's type, in SI units."""
+        default = self.default
+        if self.dimension is not None and isinstance(value, str):
+            return parse_quantity(value, self.dimension)
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise UnitError(f"expected true or false, got {value!r}")
+            return value
+        if isinstance(default, int) and not isinstance(default, bool):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or int(value) != value:
+                raise UnitError(f"expected an integer, got {value!r}")
+            return int(value)
+        if isinstance(default, float):
+            if isinstance(value, str):
+                return parse_quantity(value)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise UnitError(f"expected a number, got {value!r}")
+            return float(value)
+        if isinstance(default, (tuple, list, np.ndarray)):
+            try:
+                items = [parse_quantity(v, self.dimension) if isinstance(v, str) else v for v in value]
+                arr = np.asarray(items, dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise UnitError(f"expected a list of numbers, got {value!r}") from exc
+            expected = np.shape(default)
+            if expected and len(expected) == 1 and expected[0] and arr.shape != expected:
+                raise UnitError(f"expected {expected[0]} numbers, got shape {arr.shape}")
+            arr.setflags(write=False)
+            return arr
+        if isinstance(default, str) and not isinstance(value, str):
+            raise UnitError(f"expected a string, got {value!r}")
+        return value
+
+
+@dataclass(frozen=True)
+class Capabilities:
+    """What a module can do.
+
+    - ``can_rollback``: its state can be saved and restored exactly (history, backtick, snapshot).
+    - ``can_fork``: it can be copied into an independent world (`World.fork`).
+    - ``feedthrough``: its outputs after a step depend on the inputs of that step. A module whose
+      outputs depend on its state only (a physics core, an integrator) is not feedthrough; the
+      schedule lets its consumers read its outputs before it steps, which breaks feedback loops.
+    """
+
+    can_rollback: bool = True
+    can_fork: bool = True
+    feedthrough: bool = True
+
+
+@dataclass
+class SetupContext:
+    """What a module gets from the world when it joins it."""
+
+    world_name: str
+    dt_ns: int
+    """The world's base step in nanoseconds."""
+    period_ns: int
+    """This module's period (a whole multiple of ``dt_ns``)."""
+    tick: int
+    """The tick the module joins at."""
+    rng: np.random.Generator
+    """This module's own seeded generator (derived from the world seed and the module name)."""
+    core: PhysicsCore | None = None
+    """The world's physics core, when there is one (targets are resolved against its scene)."""
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+class Module:
+    """Base class of every module. See the module docstring for the lifecycle."""
+
+    PARAMS: ClassVar[tuple[Param, ...]] = ()
+    CAPABILITIES: ClassVar[Capabilities] = Capabilities()
+    DEFAULT_PERIOD: ClassVar[str | int | None] = None
+    """Default period (``"10ms"`` or ns); None means the world's base step."""
+
+    def __init__(self, name: str, *, targets: Sequence[str] = (), **params: Any):
+        if not isinstance(name, str) or not name or "." in name:
+            raise DynabrainError(f"module name {name!r} must be a non-empty string without dots")
+        self.name = name
+        self.targets: tuple[str, ...] = tuple(targets)
+        self._param_values: dict[str, Any] = self._resolve_params(params)
+        self.inp: Mapping[str, np.ndarray] = types.MappingProxyType({})
+        self.out: Mapping[str, np.ndarray] = types.MappingProxyType({})
+
+    # -- parameters -----------------------------------------------------------------------------
+    @classmethod
+    def param_specs(cls) -> dict[str, Param]:
+        return {p.name: p for p in cls.PARAMS}
+
+    def _resolve_params(self, given: Mapping[str, Any]) -> dict[str, Any]:
+        specs = self.param_specs()
+        values: dict[str, Any] = {}
+        for key, value in given.items():
+            if key not in specs:
+                raise DynabrainError(
+                    f"module {self.name!r} ({type(self).__name__}) has no parameter {key!r}"
+                    + did_you_mean(key, specs) + (f"; it has: {', '.join(specs)}" if specs else "")
+                )
+            try:
+                values[key] = specs[key].convert(value)
+            except UnitError as exc:
+                raise UnitError(f"module {self.name!r}, parameter {key!r}: {exc}") from None
+        for key, spec in specs.items():
+            if key not in values:
+                values[key] = spec.convert(spec.default) if spec.default is not None else None
+        return values
+
+    @property
+    def params(self) -> Mapping[str, Any]:
+        """Current parameter values (read-only; change them through `World.set`)."""
+        return types.MappingProxyType(self._param_values)
+
+    def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
+        """Change a parameter (the world calls this; it records the change in history)."""
+        specs = self.param_specs()
+        if name not in specs:
+            raise DynabrainError(f"module {self.name!r} has no parameter {name!r}" + did_you_mean(name, specs))
+        spec = specs[name]
+        if running and not spec.runtime:
+            raise DynabrainError(f"parameter {self.name}.{name} cannot be changed at run time")
+        converted = spec.convert(value)
+        updated = dict(self._param_values)  # copy-on-write: history keeps the old dict
+        updated[name] = converted
+        self._param_values = updated
+        self.on_param(name, converted)
+
+    def _restore_params(self, values: dict[str, Any]) -> None:
+        if values is self._param_values:
+            return
+        old = self._param_values
+        self._param_values = values
+        for key, value in values.items():
+            if old.get(key) is not value:
+                self.on_param(key, value)
+
+    # -- the contract ---------------------------------------------------------------------------
+    def inputs(self) -> Sequence[Port]:
+        """Input ports."""
+        return ()
+
+    def outputs(self) -> Sequence[Port]:
+        """Output ports."""
+        return ()
+
+    def setup(self, ctx: SetupContext) -> None:
+        """Join a world: resolve targets, allocate resources. Called once per world."""
+
+    def bind(self) -> None:
+        """``self.inp`` / ``self.out`` were (re)bound; refresh any cached views of them."""
+
+    def start(self, t_ns: int) -> None:
+        """Initial state at the joining tick; write every output's initial value."""
+
+    def step(self, t_ns: int, dt_ns: int) -> None:
+        """Advance from ``t_ns`` to ``t_ns + dt_ns``."""
+
+    def get_state(self) -> Any:
+        """The module's state, as a value the module will not mutate later."""
+        return None
+
+    def set_state(self, state: Any) -> None:
+        """Take back a state returned by `get_state` (copy what you keep)."""
+
+    def on_param(self, name: str, value: Any) -> None:
+        """A run-time parameter changed to ``value``; apply it."""
+
+    def close(self) -> None:
+        """Release resources. Called once."""
+
+    def fork(self) -> Module:
+        """An independent copy for a forked world (same configuration and state, unbound)."""
+        self_inp, self_out = self.inp, self.out
+        self.inp = self.out = types.MappingProxyType({})
+        try:
+            return copy.deepcopy(self)
+        finally:
+            self.inp, self.out = self_inp, self_out
+
+    def describe(self) -> dict[str, Any]:
+        """A plain description (for `dynabrain check`, logs and the bridge)."""
+        return {
+            "name": self.name,
+            "class": f"{type(self).__module__}:{type(self).__qualname__}",
+            "inputs": [(p.name, p.shape, p.unit) for p in self.inputs()],
+            "outputs": [(p.name, p.shape, p.unit) for p in self.outputs()],
+            "params": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.params.items()},
+            "targets": list(self.targets),
+            "capabilities": self.CAPABILITIES,
+        }
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name!r}>"

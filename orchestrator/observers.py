@@ -1,0 +1,84 @@
+"""Observers: a logger, a bridge publisher or a viewer sees the world after each tick, read-only.
+
+They are told about rollbacks and restores, so a log never presents a discarded future as the run,
+and about edits (modules added or removed, parameters set, make, joints) as events.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .world import World
+
+
+@dataclass(frozen=True)
+class WorldEvent:
+    """Something that happened to the world at a tick: ``kind`` and a plain ``detail`` dict."""
+
+    tick: int
+    kind: str
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+class WorldView:
+    """A read-only view of a world, handed to observers."""
+
+    def __init__(self, world: World):
+        self._world = world
+
+    @property
+    def name(self) -> str:
+        return self._world.name
+
+    @property
+    def tick(self) -> int:
+        return self._world.tick_count
+
+    @property
+    def time(self) -> float:
+        return self._world.time
+
+    @property
+    def dt_ns(self) -> int:
+        return self._world.dt_ns
+
+    def get(self, name: str) -> Any:
+        return self._world.get(name)
+
+    def signals(self) -> list[str]:
+        return self._world.signals()
+
+    def bus(self) -> np.ndarray:
+        """The whole bus as a read-only array (layout from `signal_slots`)."""
+        view = self._world._buf.view()
+        view.setflags(write=False)
+        return view
+
+    def signal_slots(self) -> dict[str, tuple[int, tuple[int, ...], str]]:
+        """signal -> (offset in `bus`, shape, unit)."""
+        return {n: (s.start, s.shape, s.port.unit) for n, s in self._world._structure.layout.slots.items()}
+
+    @property
+    def core(self):
+        return self._world.core
+
+
+class Observer:
+    """Base class with no-op hooks; override what you need. Hooks run on the stepping thread,
+    under the world lock: keep them short, and do not call the world's editing API from them."""
+
+    def on_tick(self, view: WorldView) -> None:
+        """After each tick."""
+
+    def on_rollback(self, view: WorldView, from_tick: int) -> None:
+        """The world went back from ``from_tick`` to ``view.tick`` (backtick, restore, failed tick)."""
+
+    def on_event(self, view: WorldView, event: WorldEvent) -> None:
+        """An edit or a notable event."""
+
+    def on_close(self, view: WorldView) -> None:
+        """The world is closing."""

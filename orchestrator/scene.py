@@ -1,0 +1,206 @@
+"""The ``scene:`` section of a scenario: primitives (engine-neutral) or a model file.
+
+``- box: {name: aa, size: [0.1, 0.1, 0.1], mass: 50g, pos: [0, 0, 0.6], color: blue}``; shapes are
+plane, box (full edge lengths), sphere ([radius]), capsule and cylinder ([radius, length]).
+``joint:`` is ``free`` (the default for a top-level body), ``fixed``, or ``{hinge: {axis, anchor,
+range, damping}}`` / ``{slide: {...}}`` (a hinge range is in degrees unless a unit says otherwise);
+``parent:`` attaches a body to another.
+``euler: [rx, ry, rz]`` (degrees, applied x then y then z) may replace ``quat``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import numpy as np
+
+from .core import COLORS, JOINT_KINDS, SHAPES, BodySpec, JointSpec, SceneSpec
+from .errors import DynabrainError, Problem, UnitError
+from .suggest import did_you_mean
+from .units import parse_quantity
+from .yamlsrc import Path, YamlSource
+
+_BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction")
+_JOINT_KEYS = ("name", "axis", "anchor", "range", "damping")
+_SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,)}
+
+
+def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple[SceneSpec, list[Problem]]:
+    """A SceneSpec and the problems found (every one, with its line)."""
+    problems: list[Problem] = []
+    if isinstance(data, dict):
+        unknown = [k for k in data if k != "model"]
+        for key in unknown:
+            problems.append(src.problem(("scene", key), f"unknown key {key!r} in scene; a scene is a list of "
+                                        "primitives or {model: file}" + did_you_mean(key, ["model"])))
+        model = data.get("model")
+        if not isinstance(model, str):
+            problems.append(src.problem(("scene",), "scene.model must be a file path"))
+            return SceneSpec(), problems
+        path = model if os.path.isabs(model) else os.path.join(base_dir, model)
+        if not os.path.exists(path):
+            problems.append(src.problem(("scene", "model"), f"model file {model!r} not found (looked in {base_dir})"))
+        return SceneSpec(model=path), problems
+    bodies: list[BodySpec] = []
+    names: set[str] = set()
+    for i, item in enumerate(data or []):
+        path: Path = ("scene", i)
+        if not isinstance(item, dict) or len(item) != 1:
+            problems.append(src.problem(path, "each scene item is one shape: `- box: {...}`"))
+            continue
+        shape, fields = next(iter(item.items()))
+        if shape not in SHAPES:
+            problems.append(src.problem(path, f"unknown shape {shape!r}" + did_you_mean(shape, SHAPES)
+                                        + f"; shapes: {', '.join(SHAPES)}"))
+            continue
+        try:
+            body = _body(shape, fields or {}, src, (*path, shape), problems)
+        except (DynabrainError, ValueError, TypeError) as exc:
+            problems.append(src.problem((*path, shape), str(exc)))
+            continue
+        if body is None:
+            continue
+        if body.name in names:
+            problems.append(src.problem((*path, shape, "name"), f"body name {body.name!r} is used twice"))
+        names.add(body.name)
+        bodies.append(body)
+    for i, body in enumerate(bodies):
+        if body.parent is not None and body.parent not in names:
+            problems.append(Problem(f"unknown parent {body.parent!r}" + did_you_mean(body.parent, names),
+                                    src.file, body.line, f"scene[{i}].parent"))
+    return SceneSpec(bodies=tuple(bodies)), problems
+
+
+def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
+    if not isinstance(f, dict):
+        raise DynabrainError(f"{shape} needs a mapping of fields ({', '.join(_BODY_KEYS)})")
+    before = len(problems)
+    for key in f:
+        if key not in _BODY_KEYS:
+            problems.append(src.problem((*path, key), f"unknown key {key!r}" + did_you_mean(key, _BODY_KEYS)
+                                        + f"; valid keys: {', '.join(_BODY_KEYS)}"))
+
+    def field(key: str, parse, default=None):
+        if key not in f:
+            return default
+        try:
+            return parse(f[key])
+        except (DynabrainError, ValueError, TypeError) as exc:
+            problems.append(src.problem((*path, key), str(exc)))
+            return default
+
+    name = f.get("name", "floor" if shape == "plane" else None)
+    if not isinstance(name, str) or not name:
+        problems.append(src.problem(path, f"a {shape} needs a name"))
+        name = "?"
+    size = field("size", lambda v: _vector(v, None, "length"), ())
+    if len(size) not in _SIZE_LEN[shape]:
+        problems.append(src.problem((*path, "size"), f"a {shape} has size of length "
+                                    f"{' or '.join(map(str, _SIZE_LEN[shape]))}, got {len(size)}"))
+    if any(s <= 0 for s in size):
+        problems.append(src.problem((*path, "size"), "sizes must be positive"))
+    quat = field("quat", lambda v: _unit_quat(_vector(v, 4)), (1.0, 0.0, 0.0, 0.0))
+    if "euler" in f:
+        quat = field("euler", lambda v: _euler(_vector(v, 3, "angle", default_unit="deg")), quat)
+    joint = field("joint", _joint)
+    if shape == "plane" and joint not in (None,) and joint.kind != "fixed":
+        problems.append(src.problem((*path, "joint"), "a plane is static; it takes no joint"))
+    body = BodySpec(
+        name=name, shape=shape, size=tuple(size),
+        pos=field("pos", lambda v: _vector(v, 3, "length"), (0.0, 0.0, 0.0)),
+        quat=quat, mass=field("mass", lambda v: _positive(parse_quantity(v, "mass"))),
+        color=field("color", _color, COLORS["grey"]), joint=joint, parent=f.get("parent"),
+        friction=field("friction", lambda v: _positive(float(v))), line=src.line(path),
+    )
+    return body if len(problems) == before else None
+
+
+def _positive(x: float) -> float:
+    if not x > 0:
+        raise UnitError(f"must be positive, got {x}")
+    return x
+
+
+def _vector(value: Any, n: int | None, dimension: str | None = None, default_unit: str | None = None) -> tuple:
+    if not isinstance(value, (list, tuple)):
+        raise UnitError(f"expected a list of {n or 'some'} numbers, got {value!r}")
+    if n is not None and len(value) != n:
+        raise UnitError(f"expected {n} numbers, got {len(value)}")
+    out = []
+    for v in value:
+        if default_unit and not isinstance(v, str):
+            v = f"{v}{default_unit}"
+        out.append(parse_quantity(v, dimension))
+    return tuple(out)
+
+
+def _unit_quat(q: tuple) -> tuple:
+    norm = math.sqrt(sum(x * x for x in q))
+    if norm == 0:
+        raise UnitError("a quaternion cannot be zero")
+    return tuple(x / norm for x in q)
+
+
+def _euler(angles: tuple) -> tuple:
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for axis, angle in enumerate(angles):
+        r = np.zeros(4)
+        r[0] = math.cos(angle / 2)
+        r[1 + axis] = math.sin(angle / 2)
+        q = _qmul(r, q)
+    return tuple(float(x) for x in q)
+
+
+def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def _color(value: Any) -> tuple:
+    if isinstance(value, str):
+        if value not in COLORS:
+            raise UnitError(f"unknown colour {value!r}" + did_you_mean(value, COLORS)
+                            + f"; colours: {', '.join(COLORS)}")
+        return COLORS[value]
+    rgba = _vector(value, None)
+    if len(rgba) not in (3, 4) or not all(0 <= c <= 1 for c in rgba):
+        raise UnitError("a colour is a name or [r, g, b(, a)] in 0..1")
+    return rgba if len(rgba) == 4 else (*rgba, 1.0)
+
+
+def _joint(value: Any) -> JointSpec:
+    if isinstance(value, str):
+        if value not in JOINT_KINDS:
+            raise UnitError(f"unknown joint {value!r}" + did_you_mean(value, JOINT_KINDS)
+                            + f"; joints: {', '.join(JOINT_KINDS)}")
+        return JointSpec(kind=value)
+    if not isinstance(value, dict) or len(value) != 1:
+        raise UnitError("a joint is free, fixed, or {hinge: {...}} / {slide: {...}}")
+    kind, fields = next(iter(value.items()))
+    if kind not in ("hinge", "slide"):
+        raise UnitError(f"unknown joint kind {kind!r}" + did_you_mean(kind, ("hinge", "slide")))
+    fields = fields or {}
+    for key in fields:
+        if key not in _JOINT_KEYS:
+            raise UnitError(f"unknown joint key {key!r}" + did_you_mean(key, _JOINT_KEYS))
+    rng = fields.get("range")
+    dim = "angle" if kind == "hinge" else "length"
+    return JointSpec(
+        kind=kind, name=fields.get("name"),
+        axis=_axis(fields.get("axis", [0, 0, 1])),
+        anchor=_vector(fields.get("anchor", [0, 0, 0]), 3, "length"),
+        range=None if rng is None else _vector(rng, 2, dim, default_unit="deg" if kind == "hinge" else None),
+        damping=float(fields.get("damping", 0.0)),
+    )
+
+
+def _axis(value: Any) -> tuple:
+    v = np.array(_vector(value, 3))
+    n = np.linalg.norm(v)
+    if n == 0:
+        raise UnitError("a joint axis cannot be zero")
+    return tuple(float(x) for x in v / n)

@@ -1,0 +1,257 @@
+"""The world's structure: modules present, connections, the bus layout and the schedule.
+
+A `Structure` is immutable. Every edit (add or remove a module, connect, disconnect) builds a new
+one, checked before it replaces the old; history keeps references to the structures it saw, which
+is how a rollback restores the modules present as well as their states.
+
+The bus is one flat float64 buffer; every port is a view into it. Saving the bus is one copy.
+
+The schedule (the master algorithm, Gauss-Seidel): at each tick,
+1. *delayed* connections copy their source values, as they are at the start of the tick;
+2. modules due at this tick step in data-flow order; before each steps, its *direct* inputs are
+   copied from their sources, which have already stepped this tick.
+A connection is delayed when written so (``delay: true``) or when its source module is not
+feedthrough (its outputs come from its state: a physics core). Direct connections must form no
+cycle; a cycle is an algebraic loop and is reported with its path.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import AlgebraicLoopError, WiringError
+from .module import Module, Port
+from .suggest import did_you_mean
+from .units import same_unit
+
+
+@dataclass(frozen=True)
+class ModuleRecord:
+    """A module as present in a world: its period in ticks and the tick phase it steps on."""
+
+    name: str
+    module: Module
+    period_ticks: int
+    phase: int
+    period_ns: int
+    inputs: tuple[Port, ...]
+    outputs: tuple[Port, ...]
+
+
+@dataclass(frozen=True)
+class Connection:
+    """``src`` (an output, ``module.port``) drives ``dst`` (an input)."""
+
+    src: str
+    dst: str
+    delay: bool = False
+    line: int | None = None
+
+    def __str__(self) -> str:
+        return f"{self.src} -> {self.dst}" + (" (delayed)" if self.delay else "")
+
+
+def split_signal(name: str) -> tuple[str, str]:
+    """``"core.aa.pos"`` -> ``("core", "aa.pos")``."""
+    module, sep, port = name.partition(".")
+    if not sep or not module or not port:
+        raise WiringError(f"{name!r} is not a signal name of the form module.port")
+    return module, port
+
+
+@dataclass(frozen=True)
+class Slot:
+    """Where a port lives in the bus buffer."""
+
+    start: int
+    size: int
+    shape: tuple[int, ...]
+    port: Port
+    direction: str  # "in" or "out"
+
+
+class BusLayout:
+    """Offsets of every port of every module in one flat buffer."""
+
+    def __init__(self, records: Sequence[ModuleRecord]):
+        self.slots: dict[str, Slot] = {}
+        offset = 0
+        for rec in records:
+            for direction, ports in (("in", rec.inputs), ("out", rec.outputs)):
+                for port in ports:
+                    if port.view_of is None:
+                        self.slots[f"{rec.name}.{port.name}"] = Slot(offset, port.size, port.shape, port,
+                                                                   direction)
+                        offset += port.size
+        for rec in records:
+            for direction, ports in (("in", rec.inputs), ("out", rec.outputs)):
+                for port in ports:
+                    if port.view_of is not None:
+                        self.slots[f"{rec.name}.{port.name}"] = self._view_slot(rec, port, direction)
+        self.size = offset
+
+    def _view_slot(self, rec: ModuleRecord, port: Port, direction: str) -> Slot:
+        base_name, index = port.view_of  # type: ignore[misc]
+        base = self.slots.get(f"{rec.name}.{base_name}")
+        if base is None or base.port.view_of is not None:
+            raise WiringError(f"module {rec.name!r}: port {port.name!r} is a view of {base_name!r}, "
+                              "which is not a block port of the module")
+        row = int(np.prod(base.shape[1:], dtype=np.int64)) if len(base.shape) > 1 else 1
+        if not base.shape or not 0 <= index < base.shape[0] or port.size != row:
+            raise WiringError(f"module {rec.name!r}: port {port.name!r} ({port.shape}) does not fit "
+                              f"row {index} of {base_name!r} {base.shape}")
+        return Slot(base.start + index * row, row, port.shape, port, direction)
+
+    def indices(self, name: str) -> np.ndarray:
+        slot = self.slots[name]
+        return np.arange(slot.start, slot.start + slot.size, dtype=np.intp)
+
+
+@dataclass(frozen=True)
+class Step:
+    """One entry of the schedule: a module and the copies its direct inputs need before it steps."""
+
+    record: ModuleRecord
+    src: np.ndarray | None
+    dst: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class Structure:
+    records: tuple[ModuleRecord, ...] = ()
+    connections: tuple[Connection, ...] = ()
+    layout: BusLayout = field(default_factory=lambda: BusLayout(()))
+    plan: tuple[Step, ...] = ()
+    delayed_src: np.ndarray | None = None
+    delayed_dst: np.ndarray | None = None
+
+    def record(self, name: str) -> ModuleRecord | None:
+        for rec in self.records:
+            if rec.name == name:
+                return rec
+        return None
+
+    @property
+    def names(self) -> list[str]:
+        return [rec.name for rec in self.records]
+
+    def driver_of(self, dst: str) -> Connection | None:
+        for conn in self.connections:
+            if conn.dst == dst:
+                return conn
+        return None
+
+
+def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Connection]) -> Structure:
+    """Check modules and connections and derive layout and schedule; raises `WiringError`."""
+    records = tuple(records)
+    connections = tuple(connections)
+    by_name: dict[str, ModuleRecord] = {}
+    for rec in records:
+        if rec.name in by_name:
+            raise WiringError(f"module name {rec.name!r} is used twice")
+        by_name[rec.name] = rec
+    layout = BusLayout(records)
+    for conn in connections:
+        _check_connection(conn, layout, by_name)
+    _check_single_driver(connections)
+    order = _order(records, connections, by_name)
+    plan = []
+    for rec in order:
+        direct = [c for c in connections if not c.delay and split_signal(c.dst)[0] == rec.name
+                  and by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
+        src, dst = _gather(layout, direct)
+        plan.append(Step(rec, src, dst))
+    delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
+    dsrc, ddst = _gather(layout, delayed)
+    return Structure(records, connections, layout, tuple(plan), dsrc, ddst)
+
+
+def _gather(layout: BusLayout, conns: Sequence[Connection]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if not conns:
+        return None, None
+    src = np.concatenate([layout.indices(c.src) for c in conns])
+    dst = np.concatenate([layout.indices(c.dst) for c in conns])
+    return src, dst
+
+
+def _check_connection(conn: Connection, layout: BusLayout, by_name: dict[str, ModuleRecord]) -> None:
+    for end, want in ((conn.src, "out"), (conn.dst, "in")):
+        module, port = split_signal(end)
+        if module not in by_name:
+            raise WiringError(f"connection {conn}: no module {module!r}" + did_you_mean(module, by_name))
+        slot = layout.slots.get(end)
+        if slot is None:
+            ports = [p.name for p in (by_name[module].outputs if want == "out" else by_name[module].inputs)]
+            raise WiringError(f"connection {conn}: module {module!r} has no "
+                              f"{'output' if want == 'out' else 'input'} port {port!r}" + did_you_mean(port, ports))
+        if slot.direction != want:
+            raise WiringError(f"connection {conn}: {end} is an {'input' if want == 'out' else 'output'}; "
+                              f"a connection goes from an output to an input")
+    src, dst = layout.slots[conn.src], layout.slots[conn.dst]
+    if src.shape != dst.shape:
+        raise WiringError(f"connection {conn}: shape mismatch, {conn.src} is {src.shape}, {conn.dst} is {dst.shape}")
+    if not same_unit(src.port.unit, dst.port.unit):
+        raise WiringError(f"connection {conn}: unit mismatch, {conn.src} is in {src.port.unit!r}, "
+                          f"{conn.dst} in {dst.port.unit!r}")
+
+
+def _check_single_driver(connections: Sequence[Connection]) -> None:
+    seen: dict[str, Connection] = {}
+    for conn in connections:
+        if conn.dst in seen:
+            raise WiringError(f"input {conn.dst} is driven twice: by {seen[conn.dst].src} and by {conn.src}")
+        seen[conn.dst] = conn
+
+
+def _order(records: tuple[ModuleRecord, ...], connections: tuple[Connection, ...],
+           by_name: dict[str, ModuleRecord]) -> list[ModuleRecord]:
+    """Topological order of direct connections, ties broken by the order modules were added."""
+    index = {rec.name: i for i, rec in enumerate(records)}
+    succ: dict[str, list[tuple[str, Connection]]] = {rec.name: [] for rec in records}
+    indeg = {rec.name: 0 for rec in records}
+    for conn in connections:
+        src_mod, dst_mod = split_signal(conn.src)[0], split_signal(conn.dst)[0]
+        if conn.delay or not by_name[src_mod].module.CAPABILITIES.feedthrough:
+            continue
+        succ[src_mod].append((dst_mod, conn))
+        indeg[dst_mod] += 1
+    ready = [index[n] for n, d in indeg.items() if d == 0]
+    heapq.heapify(ready)
+    order: list[ModuleRecord] = []
+    while ready:
+        rec = records[heapq.heappop(ready)]
+        order.append(rec)
+        for dst_mod, _ in succ[rec.name]:
+            indeg[dst_mod] -= 1
+            if indeg[dst_mod] == 0:
+                heapq.heappush(ready, index[dst_mod])
+    if len(order) < len(records):
+        raise AlgebraicLoopError(_find_cycle(succ, {n for n, d in indeg.items() if d > 0}))
+    return order
+
+
+def _find_cycle(succ: dict[str, list[tuple[str, Connection]]], stuck: set[str]) -> list[str]:
+    """A cycle among the modules left with inputs, as the signals around it.
+
+    Every stuck module has a stuck predecessor, so walking predecessors must meet a cycle.
+    """
+    pred: dict[str, list[tuple[str, Connection]]] = {n: [] for n in stuck}
+    for src, edges in succ.items():
+        for dst, conn in edges:
+            if src in stuck and dst in stuck:
+                pred[dst].append((src, conn))
+    node = min(stuck)
+    walk: list[tuple[str, Connection]] = []
+    seen: dict[str, int] = {}
+    while node not in seen:
+        seen[node] = len(walk)
+        prev, conn = pred[node][0]
+        walk.append((prev, conn))
+        node = prev
+    loop = [conn for _, conn in reversed(walk[seen[node]:])]
+    return [str(c.src) + " -> " + str(c.dst) for c in loop] + [split_signal(loop[0].src)[0]]
