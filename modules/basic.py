@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from dynabrain.orchestrator.module import Capabilities, Module, Param, Port, SetupContext
 
 

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 from pydantic import BaseModel, ConfigDict
 
 from .errors import DynabrainError
-from .world import World, as_connection
+from .world import World, as_connection, expand_names
 
 if TYPE_CHECKING:
     from .scenario import ModuleCfg, _Builder
@@ -108,12 +108,12 @@ def _objects(call: str):
             builder.report(path, f"{call} needs a physics core")
             return lambda w: None
         known = core.objects() if call == "make" else core.bodies()
-        from .suggest import did_you_mean
-
+        kind = "object" if call == "make" else "body"
         for i, name in enumerate(value):
-            if name not in known:
-                builder.report((*path, i), f"unknown {'object' if call == 'make' else 'body'} {name!r}"
-                               + did_you_mean(name, known))
+            try:
+                expand_names([name], known, kind, call)
+            except DynabrainError as exc:
+                builder.report((*path, i), str(exc))
         if call == "make_joint":
             if len(value) != 2:
                 builder.report(path, "make_joint takes two bodies: [a, b]")

@@ -25,6 +25,10 @@ Lifecycle (the order the world calls a module in; `check_module` verifies it)::
     m.close()                          # 8. once, when the world closes (a removed module stays alive
                                        #    while history may bring it back)
 
+Fork: `World.fork` deep-copies every module with one shared memo (so a sensor holding the core
+gets the copied core), unbound. A module holding foreign resources (an engine handle, an FMU
+instance) defines ``__deepcopy__`` to copy them properly, or declares ``can_fork=False``.
+
 Failure policy: an exception from `setup` or `start` refuses the module (the world is unchanged);
 an exception from `step` (or a `PhysicsDivergedError`) rolls the whole world back to the state at
 the start of the failed tick and is re-raised as `ModuleError` naming the module, call and tick.
@@ -34,7 +38,6 @@ must copy what it keeps. Randomness comes from `ctx.rng` and its state belongs i
 
 from __future__ import annotations
 
-import copy
 import types
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -168,8 +171,8 @@ class Module:
         self.name = name
         self.targets: tuple[str, ...] = tuple(targets)
         self._param_values: dict[str, Any] = self._resolve_params(params)
-        self.inp: Mapping[str, np.ndarray] = types.MappingProxyType({})
-        self.out: Mapping[str, np.ndarray] = types.MappingProxyType({})
+        self.inp: Mapping[str, np.ndarray] = {}
+        self.out: Mapping[str, np.ndarray] = {}
 
     # -- parameters -----------------------------------------------------------------------------
     @classmethod
@@ -255,15 +258,6 @@ class Module:
 
     def close(self) -> None:
         """Release resources. Called once."""
-
-    def fork(self) -> Module:
-        """An independent copy for a forked world (same configuration and state, unbound)."""
-        self_inp, self_out = self.inp, self.out
-        self.inp = self.out = types.MappingProxyType({})
-        try:
-            return copy.deepcopy(self)
-        finally:
-            self.inp, self.out = self_inp, self_out
 
     def describe(self) -> dict[str, Any]:
         """A plain description (for `dynabrain check`, logs and the bridge)."""

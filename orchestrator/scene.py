@@ -6,6 +6,8 @@ plane, box (full edge lengths), sphere ([radius]), capsule and cylinder ([radius
 range, damping}}`` / ``{slide: {...}}`` (a hinge range is in degrees unless a unit says otherwise);
 ``parent:`` attaches a body to another.
 ``euler: [rx, ry, rz]`` (degrees, applied x then y then z) may replace ``quat``.
+``- grid: {of: {box: {...}}, count: [nx, ny], spacing: [dx, dy]}`` repeats a shape on a grid; the
+copies are named ``<name>_<i>_<j>`` and placed at ``pos + (i*dx, j*dy, 0)``.
 """
 
 from __future__ import annotations
@@ -45,12 +47,7 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
         return SceneSpec(model=path), problems
     bodies: list[BodySpec] = []
     names: set[str] = set()
-    for i, item in enumerate(data or []):
-        path: Path = ("scene", i)
-        if not isinstance(item, dict) or len(item) != 1:
-            problems.append(src.problem(path, "each scene item is one shape: `- box: {...}`"))
-            continue
-        shape, fields = next(iter(item.items()))
+    for shape, fields, path in _items(data or [], src, problems):
         if shape not in SHAPES:
             problems.append(src.problem(path, f"unknown shape {shape!r}" + did_you_mean(shape, SHAPES)
                                         + f"; shapes: {', '.join(SHAPES)}"))
@@ -71,6 +68,35 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
             problems.append(Problem(f"unknown parent {body.parent!r}" + did_you_mean(body.parent, names),
                                     src.file, body.line, f"scene[{i}].parent"))
     return SceneSpec(bodies=tuple(bodies)), problems
+
+
+def _items(data: list[Any], src: YamlSource, problems: list[Problem]):
+    """(shape, fields, path) of each scene item, with grids expanded."""
+    for i, item in enumerate(data):
+        path: Path = ("scene", i)
+        if not isinstance(item, dict) or len(item) != 1:
+            problems.append(src.problem(path, "each scene item is one shape: `- box: {...}`"))
+            continue
+        shape, fields = next(iter(item.items()))
+        if shape != "grid":
+            yield shape, fields, path
+            continue
+        try:
+            yield from _grid(fields, path)
+        except (DynabrainError, ValueError, TypeError, KeyError) as exc:
+            problems.append(src.problem((*path, "grid"), f"a grid is {{of: {{shape: {{...}}}}, count: [nx, ny], "
+                                        f"spacing: [dx, dy]}}: {exc}"))
+
+
+def _grid(fields: dict[str, Any], path: Path):
+    (shape, base), = fields["of"].items()
+    nx, ny = (int(c) for c in fields["count"])
+    dx, dy = _vector(fields["spacing"], 2, "length")
+    x0, y0, z0 = _vector(base.get("pos", [0, 0, 0]), 3, "length")
+    for ix in range(nx):
+        for iy in range(ny):
+            copy = dict(base, name=f"{base.get('name', shape)}_{ix}_{iy}", pos=[x0 + ix * dx, y0 + iy * dy, z0])
+            yield shape, copy, (*path, "grid", "of", shape)
 
 
 def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:

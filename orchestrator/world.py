@@ -16,9 +16,9 @@ One tick (n -> n+1), the failure policy of each phase in brackets:
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import threading
 import time as _time
-import types
 import zlib
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
@@ -253,7 +253,7 @@ class World:
             bindings = {}
             for rec in self._structure.records:
                 bindings[rec.name] = (rec.module.inp, rec.module.out)
-                rec.module.inp = rec.module.out = types.MappingProxyType({})
+                rec.module.inp, rec.module.out = {}, {}
             try:
                 clones = {rec.name: copy.deepcopy(rec.module, memo) for rec in self._structure.records}
             finally:
@@ -370,17 +370,17 @@ class World:
                     view = buf[slot.start:slot.start + slot.size].reshape(slot.shape)
                     view.setflags(write=writable)
                     target[port.name] = view
-            rec.module.inp = types.MappingProxyType(inp)
-            rec.module.out = types.MappingProxyType(out)
+            rec.module.inp = inp
+            rec.module.out = out
             rec.module.bind()
 
     # -- scene edits (delegated to the core; part of its state) ----------------------------------------
     def make(self, objects: Iterable[str]) -> None:
-        """Simulate only ``objects``; every other object is frozen where it stands (d-make)."""
+        """Simulate only ``objects``; every other object is frozen where it stands (d-make).
+        Names may be glob patterns (``box_*``)."""
         with self._lock:
             core = self._require_core("make")
-            names = _names(objects)
-            self._check_names(names, core.objects(), "object", "make")
+            names = expand_names(_names(objects), core.objects(), "object", "make")
             core.make(names)
             self._edited("make", objects=names)
 
@@ -388,7 +388,7 @@ class World:
         """Join bodies ``a`` and ``b`` as they stand (d-make-joint); returns the joint's name."""
         with self._lock:
             core = self._require_core("make_joint")
-            self._check_names([a, b], core.bodies(), "body", "make_joint")
+            expand_names([a, b], core.bodies(), "body", "make_joint")
             joint = core.make_joint(a, b, name)
             self._edited("make_joint", a=a, b=b, joint=joint)
             return joint
@@ -402,8 +402,7 @@ class World:
         """Ignore contacts among ``objects`` (d-no-collision)."""
         with self._lock:
             core = self._require_core("no_collision")
-            names = _names(objects)
-            self._check_names(names, core.bodies(), "body", "no_collision")
+            names = expand_names(_names(objects), core.bodies(), "body", "no_collision")
             core.no_collision(names)
             self._edited("no_collision", objects=names)
 
@@ -411,7 +410,7 @@ class World:
         """Move a free body to a pose, at rest."""
         with self._lock:
             core = self._require_core("place")
-            self._check_names([body], core.bodies(), "body", "place")
+            expand_names([body], core.bodies(), "body", "place")
             core.place(body, pos, quat)
             self._write_core_outputs()
             self._edited("place", body=body, pos=list(map(float, pos)))
@@ -607,11 +606,6 @@ class World:
             raise DynabrainError(f"{call}() needs a physics core, and this world has none")
         return self._core
 
-    def _check_names(self, names: Sequence[str], known: Sequence[str], kind: str, call: str) -> None:
-        for name in names:
-            if name not in known:
-                raise DynabrainError(f"{call}(): unknown {kind} {name!r}" + did_you_mean(name, known))
-
     def _period_ns(self, module: Module, period: int | str | None) -> int:
         value = period if period is not None else module.DEFAULT_PERIOD
         ns = self.dt_ns if value is None else (value if isinstance(value, int) else parse_duration_ns(value))
@@ -643,6 +637,22 @@ def as_connection(value: Connection | Sequence[Any]) -> Connection:
                           f"got {value!r}")
     delay = bool(value[2].get("delay", False)) if len(value) == 3 and isinstance(value[2], dict) else False
     return Connection(str(value[0]), str(value[1]), delay)
+
+
+def expand_names(names: Sequence[str], known: Sequence[str], kind: str, call: str) -> list[str]:
+    """Names with glob patterns expanded against ``known``; an unknown name or empty pattern is an error."""
+    out: list[str] = []
+    for name in names:
+        if any(ch in name for ch in "*?["):
+            matched = fnmatch.filter(known, name)
+            if not matched:
+                raise DynabrainError(f"{call}(): pattern {name!r} matches no {kind}")
+            out += [m for m in matched if m not in out]
+        elif name not in known:
+            raise DynabrainError(f"{call}(): unknown {kind} {name!r}" + did_you_mean(name, known))
+        elif name not in out:
+            out.append(name)
+    return out
 
 
 def _names(objects: Iterable[str] | str) -> list[str]:

@@ -1,0 +1,338 @@
+"""The kernel's own logic: schedule, wiring checks, history and rollback, fork, threads, observers.
+
+These tests use small signal modules (the orchestrator's logic is what is under test); the physics
+core's rollback is tested with real MuJoCo in test_rollback_physics.py.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from dynabrain.modules.basic import Constant, Counter, Gain, Integrator, Noise, Sine
+from dynabrain.orchestrator.checks import check_module
+from dynabrain.orchestrator.errors import AlgebraicLoopError, ModuleError, RollbackError, WiringError
+from dynabrain.orchestrator.module import Capabilities, Module, Port
+from dynabrain.orchestrator.observers import Observer
+from dynabrain.orchestrator.world import World
+
+
+class Tracer(Module):
+    """Appends (tick, name) to a shared list when it steps; one input, one output (feedthrough)."""
+
+    def __init__(self, name, log, **kw):
+        super().__init__(name, **kw)
+        self.log = log
+
+    def inputs(self):
+        return (Port("u", ()),)
+
+    def outputs(self):
+        return (Port("y", ()),)
+
+    def step(self, t_ns, dt_ns):
+        self.log.append((t_ns // 1_000_000, self.name, dt_ns // 1_000_000))
+        self.out["y"][...] = self.inp["u"] + 1
+
+
+class Boom(Module):
+    PARAMS = ()
+
+    def __init__(self, name, at_tick, **kw):
+        super().__init__(name, **kw)
+        self.at_tick = at_tick
+
+    def step(self, t_ns, dt_ns):
+        if t_ns // 1_000_000 == self.at_tick:
+            raise ValueError("boom")
+
+
+class NoRollback(Counter):
+    CAPABILITIES = Capabilities(can_rollback=False, can_fork=False)
+
+
+def test_schedule_golden_trace_multirate():
+    log: list = []
+    w = World(step="1ms")
+    # added in an order that is not the data-flow order: c <- b <- a
+    w.add_module(Tracer("c", log), period="3ms")
+    w.add_module(Tracer("b", log), period="2ms")
+    w.add_module(Tracer("a", log))
+    w.connect("a.y", "b.u")
+    w.connect("b.y", "c.u")
+    assert w.schedule_order() == ["a", "b", "c"]
+    w.tick(7)
+    assert log == [
+        (0, "a", 1), (0, "b", 2), (0, "c", 3),
+        (1, "a", 1),
+        (2, "a", 1), (2, "b", 2),
+        (3, "a", 1), (3, "c", 3),
+        (4, "a", 1), (4, "b", 2),
+        (5, "a", 1),
+        (6, "a", 1), (6, "b", 2), (6, "c", 3),
+    ]
+    # values flow within a tick (Gauss-Seidel): c sees b's output of the same tick
+    assert w.get("a.y") == 1.0 and w.get("b.y") == 2.0 and w.get("c.y") == 3.0
+
+
+def test_late_module_steps_on_its_own_phase():
+    log: list = []
+    w = World(step="1ms")
+    w.add_module(Tracer("a", log))
+    w.tick(3)
+    w.add_module(Tracer("late", log), period="2ms")
+    w.tick(4)
+    assert [t for t, n, _ in log if n == "late"] == [3, 5]
+
+
+def test_algebraic_loop_reported_with_path():
+    w = World()
+    w.add_module(Gain("g1"))
+    w.add_module(Gain("g2"))
+    w.connect("g1.y", "g2.u")
+    with pytest.raises(AlgebraicLoopError) as err:
+        w.connect("g2.y", "g1.u")
+    assert "g1.y -> g2.u" in str(err.value) and "g2.y -> g1.u" in str(err.value)
+    assert len(w.connections) == 1  # the world is unchanged
+    w.connect("g2.y", "g1.u", delay=True)  # an explicit delay breaks it
+    w.tick(3)
+
+
+def test_loop_through_a_state_module_is_not_algebraic():
+    w = World()
+    w.add_module(Integrator("i", x0=1.0))
+    w.add_module(Gain("k", k=-1.0))
+    w.connect("i.y", "k.u")
+    w.connect("k.y", "i.u")
+    w.tick(1000)  # x' = -x, dt = 2 ms, 2 s
+    assert abs(w.get("i.y")[0] - np.exp(-2.0)) < 0.01
+
+
+@pytest.mark.parametrize(("src", "dst", "message"), [
+    ("nope.y", "g.u", "no module 'nope'"),
+    ("s.yy", "g.u", "no output port 'yy' (did you mean 'y'?)"),
+    ("g.u", "s.y", "is an input"),
+    ("v.y", "g.u", "shape mismatch"),
+])
+def test_wiring_errors(src, dst, message):
+    w = World()
+    w.add_module(Sine("s"))
+    w.add_module(Gain("g"))
+    w.add_module(Integrator("v", n=3))
+    with pytest.raises(WiringError, match=None) as err:
+        w.connect(src, dst)
+    assert message in str(err.value)
+
+
+def test_unit_mismatch_and_double_driver():
+    w = World()
+    w.add_module(Constant("s", unit="m"))
+    w.add_module(Gain("g", unit="N"))
+    w.add_module(Gain("h"))
+    with pytest.raises(WiringError, match="unit mismatch"):
+        w.connect("s.y", "g.u")
+    w.add_module(Integrator("i"))
+    w.connect("i.y", "h.u")
+    with pytest.raises(WiringError, match="driven twice"):
+        w.connect("h.y", "h.u")
+
+
+def test_bad_period_and_duplicate_name():
+    w = World(step="2ms")
+    with pytest.raises(WiringError, match="not a whole multiple"):
+        w.add_module(Counter("c"), period="3ms")
+    w.add_module(Counter("c"))
+    with pytest.raises(WiringError, match="used twice"):
+        w.add_module(Counter("c"))
+
+
+def _world() -> World:
+    w = World(step="1ms", seed=7, history=50)
+    w.add_module(Noise("n", n=2, sigma=0.5))
+    w.add_module(Integrator("i", n=2))
+    w.add_module(Gain("g", n=2, k=3.0))
+    w.connect("n.y", "i.u")
+    w.connect("i.y", "g.u")
+    return w
+
+
+def test_backtick_then_tick_is_bit_identical():
+    w = _world()
+    w.tick(10)
+    frames = []
+    for _ in range(20):
+        w.tick()
+        frames.append(w._buf.copy())
+    w.backtick(20)
+    assert w.tick_count == 10
+    for frame in frames:
+        w.tick()
+        assert np.array_equal(w._buf, frame)
+
+
+def test_backtick_restores_structure_and_params():
+    w = _world()
+    w.tick(5)
+    w.set("g.k", 10.0)
+    w.add_module(Counter("c"))
+    w.tick(5)
+    w.remove_module("n")
+    w.tick(5)
+    assert "n" not in w.modules and w.get("c.count") == 10.0
+    w.backtick(10)  # back to tick 5, after the edits made at tick 5
+    assert set(w.modules) == {"n", "i", "g", "c"} and w.get("g.k") == 10.0 and w.get("c.count") == 0.0
+    w.backtick(1)  # tick 4: before the edits
+    assert set(w.modules) == {"n", "i", "g"} and w.get("g.k") == 3.0
+    assert w.connections[0].src == "n.y"
+
+
+def test_rollback_errors():
+    w = _world()
+    w.tick(3)
+    with pytest.raises(RollbackError, match="beyond the history"):
+        w.backtick(4)
+    w.add_module(NoRollback("nr"))
+    w.tick(2)
+    with pytest.raises(RollbackError, match="nr cannot roll back"):
+        w.backtick(1)
+    w.backtick(3)  # tick 2, before the module was added (at tick 3): allowed, nothing of it to restore
+    assert "nr" not in w.modules
+
+
+def test_exception_in_step_rolls_back_and_names_module():
+    w = World(step="1ms")
+    w.add_module(Counter("c"))
+    w.add_module(Boom("bomb", at_tick=5))
+    w.tick(5)
+    before = w._buf.copy()
+    with pytest.raises(ModuleError) as err:
+        w.tick()
+    assert err.value.module == "bomb" and err.value.tick == 5 and "boom" in str(err.value)
+    assert w.tick_count == 5 and np.array_equal(w._buf, before)
+    w.remove_module("bomb")  # the world stays usable
+    w.tick(3)
+    assert w.get("c.count") == 8.0
+
+
+def test_snapshot_restore_and_fork_independence():
+    w = _world()
+    w.tick(10)
+    snap = w.snapshot()
+    fork = w.fork()
+    w.tick(10)
+    after = w._buf.copy()
+    fork.set("g.k", -1.0)  # the fork is independent
+    fork.tick(10)
+    assert not np.array_equal(fork._buf, after)
+    w.restore(snap)
+    assert w.tick_count == 10
+    w.tick(10)
+    assert np.array_equal(w._buf, after)
+    twin = w.fork()
+    twin.tick(5)
+    w.tick(5)
+    assert np.array_equal(twin._buf, w._buf)  # same seed state, same inputs, same result
+    for world in (w, fork, twin):
+        world.close()
+
+
+def test_observers_see_ticks_rollbacks_and_events():
+    seen = {"ticks": 0, "rollbacks": [], "events": []}
+
+    class Obs(Observer):
+        def on_tick(self, view):
+            seen["ticks"] += 1
+
+        def on_rollback(self, view, from_tick):
+            seen["rollbacks"].append((from_tick, view.tick))
+
+        def on_event(self, view, event):
+            seen["events"].append(event.kind)
+
+    w = _world()
+    w.observe(Obs())
+    w.tick(5)
+    w.backtick(2)
+    w.set("g.k", 2.0)
+    w.add_module(Counter("c"))
+    assert seen["ticks"] == 5 and seen["rollbacks"] == [(5, 3)]
+    assert seen["events"] == ["param", "module_added"]
+
+
+def test_thread_with_concurrent_calls():
+    w = _world()
+    w.start()
+    errors: list[BaseException] = []
+
+    def brain(k: int) -> None:
+        try:
+            for j in range(30):
+                w.get("g.y")
+                w.set("g.k", float(j))
+                with w.lock():
+                    t = w.tick_count
+                    w.tick(2)
+                    assert w.tick_count == t + 2
+                if j % 10 == 0:
+                    w.backtick(1)
+                    w.add_module(Counter(f"c{k}_{j}"))
+                    w.remove_module(f"c{k}_{j}")
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=brain, args=(k,)) for k in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    w.stop()
+    assert not errors
+    assert not w.running and w.tick_count > 0
+    w.tick(3)  # usable after stop
+    w.close()
+
+
+def test_thread_error_surfaces_on_stop():
+    w = World(step="1ms")
+    w.add_module(Boom("bomb", at_tick=20))
+    w.start()
+    assert w.wait(5.0)  # the loop ends by itself on the error
+    with pytest.raises(ModuleError, match="bomb"):
+        w.stop()
+    assert w.tick_count == 20
+
+
+def test_start_until_and_realtime():
+    w = _world()
+    w.start(realtime=20.0, until=0.05)  # 50 ms simulated at 20x real time
+    assert w.wait(10.0)
+    w.stop()
+    assert w.tick_count == 50
+
+
+@pytest.mark.parametrize("factory", [
+    lambda: Sine("s", frequency="3Hz"), lambda: Gain("g", n=3, k=2.0), lambda: Integrator("i", n=2),
+    lambda: Noise("n", n=4), lambda: Counter("c"),
+])
+def test_check_module_on_basic_modules(factory):
+    report = check_module(factory())
+    report.assert_ok()
+    assert "step -> restore -> step" in report.checked
+
+
+def test_check_module_finds_a_module_that_forgets_state():
+    class Leaky(Module):
+        def outputs(self):
+            return (Port("y", ()),)
+
+        def start(self, t_ns):
+            self.x = 0.0
+
+        def step(self, t_ns, dt_ns):
+            self.x += 1.0
+            self.out["y"][...] = self.x
+
+    report = check_module(Leaky("leaky"))
+    assert not report.ok and any("replay" in p for p in report.problems)
