@@ -18,7 +18,7 @@ from .units import format_duration
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="dynabrain: a co-simulation orchestrator a robot brain embeds.")
 console = Console(highlight=False)
-err_console = Console(stderr=True, highlight=False)
+err_console = Console(stderr=True, highlight=False, soft_wrap=True)
 
 
 def _load(path: Path):

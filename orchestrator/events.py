@@ -70,9 +70,12 @@ def build_event(ev: EventCfg, world: World, builder: _Builder, path: Path) -> tu
 def _set(value: dict[str, Any], world: World, builder: _Builder, path: Path):
     for name in value:
         try:
-            world.get(name)
+            target = world.settable(name)
         except DynabrainError as exc:
             builder.report((*path, name), str(exc))
+            continue
+        if isinstance(target, tuple) and not target[0].param_specs()[target[1]].runtime:
+            builder.report((*path, name), f"parameter {name} cannot be changed at run time")
     def apply(w: World) -> None:
         for name, val in value.items():
             w.set(name, val)

@@ -79,12 +79,15 @@ class Expectation:
         """(name, attribute or None) pairs the expression reads."""
         out: list[tuple[str, str | None]] = []
         tree = ast.parse(self.that, mode="eval")
+        inner = set()
         for node in ast.walk(tree):
             if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
                 out.append((node.value.id, node.attr))
-            elif isinstance(node, ast.Name):
+                inner.add(id(node.value))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Name) and id(node) not in inner:
                 out.append((node.id, None))
-        return out
+        return list(dict.fromkeys(out))
 
     def check(self, world: Any, namespace: dict[str, Any]) -> bool:
         namespace["t"] = world.time

@@ -441,6 +441,24 @@ class World:
         """Set a run-time parameter (``module.param``) or an unconnected input (``module.port``)."""
         with self._lock:
             self._check_open()
+            target = self.settable(name)
+            if isinstance(target, str):
+                slot = self._structure.layout.slots[target]
+                arr = np.asarray(value, dtype=np.float64)
+                if arr.shape != slot.shape:
+                    raise WiringError(f"{target} has shape {slot.shape}, got a value of shape {arr.shape}")
+                self._buf[slot.start:slot.start + slot.size] = arr.reshape(-1)
+                self._edited("set", name=target, value=arr.tolist())
+                return
+            module, key = target
+            module.set_param(key, value, running=self._tick > 0)
+            new = module.params[key]
+            self._edited("param", name=f"{module.name}.{key}", value=new.tolist() if hasattr(new, "tolist") else new)
+
+    def settable(self, name: str) -> str | tuple[Module, str]:
+        """What `set(name, ...)` would change: an input signal's full name, or (module, parameter).
+        Raises, naming the closest settable name, when ``name`` cannot be set."""
+        with self._lock:
             slot = self._resolve_signal(name)
             if slot is not None:
                 full = self._full_signal_name(name)
@@ -449,16 +467,8 @@ class World:
                 conn = self._structure.driver_of(full)
                 if conn is not None:
                     raise WiringError(f"{full} is driven by {conn.src}; disconnect it before setting it")
-                arr = np.asarray(value, dtype=np.float64)
-                if arr.shape != slot.shape:
-                    raise WiringError(f"{full} has shape {slot.shape}, got a value of shape {arr.shape}")
-                self._buf[slot.start:slot.start + slot.size] = arr.reshape(-1)
-                self._edited("set", name=full, value=arr.tolist())
-                return
-            module, key = self._split_param(name)
-            module.set_param(key, value, running=self._tick > 0)
-            new = module.params[key]
-            self._edited("param", name=f"{module.name}.{key}", value=new.tolist() if hasattr(new, "tolist") else new)
+                return full
+            return self._split_param(name, settable=True)
 
     def _full_signal_name(self, name: str) -> str:
         slots = self._structure.layout.slots
@@ -470,12 +480,13 @@ class World:
         slots = self._structure.layout.slots
         return slots.get(name) or (slots.get(f"{self._core.name}.{name}") if self._core is not None else None)
 
-    def _split_param(self, name: str) -> tuple[Module, str]:
+    def _split_param(self, name: str, settable: bool = False) -> tuple[Module, str]:
         module_name, sep, key = name.partition(".")
         rec = self._structure.record(module_name) if sep else None
         if rec is None or key not in rec.module.param_specs():
-            candidates = self.signals() + [f"{r.name}.{p}" for r in self._structure.records
-                                           for p in r.module.param_specs()]
+            layout = self._structure.layout.slots
+            signals = [n for n in layout if not settable or layout[n].direction == "in"]
+            candidates = [f"{r.name}.{p}" for r in self._structure.records for p in r.module.param_specs()] + signals
             raise DynabrainError(f"no signal or parameter named {name!r}" + did_you_mean(name, candidates))
         return rec.module, key
 

@@ -1,0 +1,139 @@
+"""Scenario validation: every problem reported at once, each with file, line and field."""
+
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+
+from dynabrain.orchestrator.errors import ScenarioError
+from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.units import parse_duration_ns
+from dynabrain.orchestrator.world import World
+
+
+def problems_of(tmp_path, text: str) -> list[str]:
+    path = tmp_path / "s.yaml"
+    path.write_text(textwrap.dedent(text))
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(path).build()
+    return [str(p) for p in err.value.problems]
+
+
+SIGNALS = """
+name: t
+world: {step: 1ms, duration: 10ms, core: null}
+modules:
+  - {name: s, python: dynabrain.modules.basic:Sine, params: {frequency: 2Hz}}
+  - {name: g, python: dynabrain.modules.basic:Gain}
+"""
+
+
+def test_malformed_yaml_has_a_line(tmp_path):
+    (msg,) = problems_of(tmp_path, "name: t\nworld: {step: 1ms\nmodules: []\n")
+    assert "malformed YAML" in msg and "s.yaml:3" in msg
+
+
+def test_unknown_keys_suggest_the_closest(tmp_path):
+    found = problems_of(tmp_path, """
+        name: t
+        wrld: {step: 1ms}
+        modules:
+          - {name: g, pyton: dynabrain.modules.basic:Gain}
+        """)
+    assert any("s.yaml:3" in p and "'wrld'" in p and "did you mean 'world'" in p for p in found)
+    assert any("s.yaml:5" in p and "modules[0].pyton" in p and "did you mean 'python'" in p for p in found)
+
+
+def test_every_problem_is_reported_together(tmp_path):
+    found = problems_of(tmp_path, SIGNALS + """
+  - {name: x, python: dynabrain.modules.basic:Nope}
+  - {name: y, python: no_such_package.mod:Cls}
+  - {name: z, python: dynabrain.modules.basic:Gain, params: {kk: 2}}
+  - {name: w, python: dynabrain.modules.basic:Counter, period: 1.5ms}
+  - {name: s, python: dynabrain.modules.basic:Counter}
+connect:
+  - [s.yy, g.u]
+expect:
+  - {at: 5ms, that: "gg.y > 0"}
+events:
+  - {at: 2ms, set: {g.kay: 3}}
+""")
+    text = "\n".join(found)
+    assert len(found) == 8, text
+    assert "has no class 'Nope'" in text
+    assert "no module named 'no_such_package'" in text
+    assert "no parameter 'kk' (did you mean 'k'?)" in text
+    assert "not a whole multiple" in text
+    assert "'s' is used twice" in text
+    assert "no output port 'yy' (did you mean 'y'?)" in text
+    assert "unknown name 'gg'" in text and "did you mean 'g'" in text
+    assert "g.kay" in text and "did you mean 'g.k'" in text
+    assert all("s.yaml:" in p for p in found)
+
+
+def test_bad_units(tmp_path):
+    found = problems_of(tmp_path, """
+        name: t
+        world: {step: 1 parsec, duration: 2kg, core: null}
+        """)
+    text = "\n".join(found)
+    assert "duration" in text and "is a mass, expected a time" in text
+
+
+def test_bad_step_unit_is_named(tmp_path):
+    found = problems_of(tmp_path, """
+        name: t
+        world: {step: 3xs, duration: 1s, core: null}
+        """)
+    assert any("s.yaml:3 [world.step]" in p and "unknown unit 'xs'" in p and "did you mean" in p for p in found)
+
+
+def test_algebraic_loop_in_a_scenario(tmp_path):
+    found = problems_of(tmp_path, SIGNALS + """
+  - {name: h, python: dynabrain.modules.basic:Gain}
+connect:
+  - [g.y, h.u]
+  - [h.y, g.u]
+""")
+    assert any("algebraic loop" in p and "g.y -> h.u" in p and "s.yaml:11 [connect[1]]" in p for p in found)
+
+
+def test_expectation_outside_the_run_and_bad_syntax(tmp_path):
+    found = problems_of(tmp_path, SIGNALS + """
+expect:
+  - {at: 1s, that: "s.y > 0"}
+  - {that: "s.y >"}
+""")
+    assert any("outside the run" in p for p in found) and any("not valid" in p for p in found)
+
+
+def test_shape_mismatch_names_the_line(tmp_path):
+    found = problems_of(tmp_path, SIGNALS + """
+connect:
+  - [s.y, g.u]
+""")
+    assert any("shape mismatch" in p and "s.yaml:9 [connect[0]]" in p for p in found), found
+
+
+def test_a_valid_signal_scenario_runs(tmp_path):
+    from dynabrain.orchestrator.runner import run_scenario
+
+    path = tmp_path / "ok.yaml"
+    path.write_text(SIGNALS.replace("10ms", "300ms") + """
+expect:
+  - {at: 125ms, that: "abs(s.y - 1) < 1e-9", name: sine peak at a quarter period}
+  - {at: 250ms, that: "abs(s.y) < 1e-9", name: zero at half a period}
+  - {at: 300ms, that: "s.y > 0", name: deliberately false}
+""")
+    result = run_scenario(load_scenario(path))
+    assert [e.passed for e in result.expectations] == [True, True, False]
+    assert "s.y = " in result.expectations[2].detail
+
+
+def test_durations_are_exact_integers():
+    assert parse_duration_ns("2ms") == 2_000_000
+    assert parse_duration_ns("0.1ms") == 100_000
+    assert parse_duration_ns("500Hz") == 2_000_000
+    assert parse_duration_ns(0.003) == 3_000_000
+    assert World(step="0.5ms").dt_ns == 500_000
