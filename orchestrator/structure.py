@@ -128,6 +128,8 @@ class Structure:
     plan: tuple[Step, ...] = ()
     delayed_src: np.ndarray | None = None
     delayed_dst: np.ndarray | None = None
+    savers: tuple[tuple[Module, bool], ...] = ()
+    """(module, can_rollback) per record, in record order: what history saves each tick."""
 
     def record(self, name: str) -> ModuleRecord | None:
         for rec in self.records:
@@ -168,7 +170,8 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
         plan.append(Step(rec, src, dst))
     delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
     dsrc, ddst = _gather(layout, delayed)
-    return Structure(records, connections, layout, tuple(plan), dsrc, ddst)
+    savers = tuple((rec.module, rec.module.CAPABILITIES.can_rollback) for rec in records)
+    return Structure(records, connections, layout, tuple(plan), dsrc, ddst, savers)
 
 
 def _gather(layout: BusLayout, conns: Sequence[Connection]) -> tuple[np.ndarray | None, np.ndarray | None]:

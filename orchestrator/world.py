@@ -150,9 +150,11 @@ class World:
         n = self._tick
         current = "event"
         try:
-            for label, action in self._scheduled.get(n, ()):
-                current = f"event {label}"
-                action(self)
+            events = self._scheduled.get(n)
+            if events:
+                for label, action in events:
+                    current = f"event {label}"
+                    action(self)
             structure = self._structure
             buf = self._buf
             if structure.delayed_src is not None:
@@ -175,8 +177,9 @@ class World:
         self._tick = n + 1
         self._history.push(self._capture())
         self._dirty = False
-        for obs in self._observers:
-            obs.on_tick(self._view)
+        if self._observers:
+            for obs in self._observers:
+                obs.on_tick(self._view)
 
     def _rollback_failed_tick(self, n: int, where: str, exc: Exception) -> ModuleError:
         self._apply(self._history.top)
@@ -195,11 +198,9 @@ class World:
 
     # -- state ----------------------------------------------------------------------------------------
     def _capture(self) -> WorldState:
-        states = tuple(
-            (rec.module._param_values, rec.module.get_state()) if rec.module.CAPABILITIES.can_rollback else None
-            for rec in self._structure.records
-        )
-        return WorldState(id(self), self._tick, self._structure, self._buf.copy(), states)
+        structure = self._structure
+        states = tuple([(m._param_values, m.get_state()) if ok else None for m, ok in structure.savers])
+        return WorldState(id(self), self._tick, structure, self._buf.copy(), states)
 
     def _apply(self, state: WorldState) -> None:
         if state.structure is not self._structure:
