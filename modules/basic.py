@@ -98,14 +98,14 @@ class Integrator(Module):
 class Noise(Module):
     """Gaussian noise ``y ~ N(0, sigma)`` from the module's own seeded generator (its state rolls back)."""
 
-    PARAMS = (Param("n", 1), Param("sigma", 1.0, runtime=True))
+    PARAMS = (Param("n", 1), Param("sigma", 1.0, runtime=True), Param("unit", "1"))
     CAPABILITIES = Capabilities(feedthrough=False)
 
     def setup(self, ctx: SetupContext):
         self.rng = ctx.rng
 
     def outputs(self):
-        return (Port("y", (self.params["n"],)),)
+        return (Port("y", (self.params["n"],), self.params["unit"]),)
 
     def step(self, t_ns, dt_ns):
         self.out["y"][...] = self.rng.normal(0.0, self.params["sigma"], self.params["n"])

@@ -108,9 +108,13 @@ class Expectation:
 def _explain(expr: str, namespace: dict[str, Any]) -> str:
     """Values of the attribute reads in ``expr``, to show why it failed."""
     parts = []
+    seen = set()
     for node in ast.walk(ast.parse(expr, mode="eval")):
         if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
             text = f"{node.value.id}.{node.attr}"
+            if text in seen:
+                continue
+            seen.add(text)
             try:
                 value = eval(compile(ast.Expression(node), "<x>", "eval"), {"__builtins__": {}}, namespace)
                 parts.append(f"{text} = {np.round(value, 6) if isinstance(value, np.ndarray) else _fmt(value)}")

@@ -1,0 +1,535 @@
+"""The MuJoCo physics core: a SceneSpec (or an MJCF file) simulated by MuJoCo as a dynabrain module.
+
+Choices (see also `mujoco_scene`):
+
+- integrator ``implicitfast``: joint damping and velocity-dependent actuator forces are integrated
+  implicitly, so damped joints and stiff drives stay stable at the world's step, at the cost of an
+  explicit step (no Coriolis derivatives); elliptic friction cones with the Newton solver (MuJoCo's
+  most accurate friction model); automatic reset on bad numbers is off, so a divergence stays visible
+  and `step` raises `PhysicsDivergedError` instead of silently restarting the model;
+- the data is kept "after `mj_step1`": a step is `mj_step2` (inputs already in place), more full steps
+  for the substeps, then `mj_step1`, so positions, velocities and sensors of the new state are current
+  for the outputs at no extra cost;
+- ports are block ports (``body_pos`` ...) written with one array operation each; every named object
+  has its own port as a view into a block (a joint's ``q``, ``qd``, ``force`` and an actuator's ``ctrl``
+  have shape (1,), like the other modules' one-value signals). Body velocities come from MuJoCo frame-velocity sensors
+  the core adds for moving bodies (computed in C, one copy per step). Per-sensor ports are views into
+  blocks grouped by sensor dimension (``sensor_d3`` is (n, 3)), because ``Port.view_of`` selects one
+  row; ``sensordata`` holds all the model's sensor values in MuJoCo's order;
+- structural edits (`make`, `make_joint`, `no_collision`) recompile the model (`mujoco_scene`);
+  each compiled structure is cached by its edits, so a rollback across an edit costs a dictionary
+  look-up. The state is ``(edits, integration state array, sensor values)`` (see `STATE`).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections import OrderedDict
+from collections.abc import Sequence
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from dynabrain.orchestrator.core import BodyInfo, PhysicsCore, SceneSpec
+from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.orchestrator.module import Param, Port, SetupContext
+from dynabrain.orchestrator.suggest import did_you_mean
+
+from . import mujoco_scene as ms
+
+_S = mujoco.mjtState
+STATE = int(_S.mjSTATE_INTEGRATION) & ~int(_S.mjSTATE_QFRC_APPLIED) & ~int(_S.mjSTATE_XFRC_APPLIED)
+"""MuJoCo's integration state without the applied forces: the core rewrites ``qfrc_applied`` from its
+inputs before every step and never uses ``xfrc_applied``, so they carry no state (and for free bodies
+they were 40 % of it)."""
+NO_EDITS: tuple = ((), (), ())
+CACHE_SIZE = 16
+DEFAULT_PERIOD_S = 0.002
+
+
+class _Structure:
+    """One compiled structure: model, data, and its maps onto the core's fixed port layout. Maps are
+    flat indices into C-ordered blocks: a slice where the rows are contiguous, else an index array."""
+
+    def __init__(self, layout: ms.Layout, edits: tuple, model: mujoco.MjModel, movers: tuple,
+                 friction: dict, data: mujoco.MjData | None = None):
+        self.edits, self.model, self.movers, self.friction = edits, model, movers, friction
+        self.data = d = data if data is not None else mujoco.MjData(model)
+        self.xpos, self.xquat = d.xpos.reshape(-1), d.xquat.reshape(-1)
+        self.qpos, self.qvel, self.sensordata = d.qpos, d.qvel, d.sensordata
+        self.ctrl, self.qfrc = d.ctrl, d.qfrc_applied
+        self.nstate = mujoco.mj_stateSize(model, STATE)
+        w = mujoco.mjtWarning
+        self.warns = tuple((what, d.warning[int(k)]) for what, k in (
+            ("acceleration", w.mjWARN_BADQACC), ("velocity", w.mjWARN_BADQVEL), ("position", w.mjWARN_BADQPOS)))
+        self.warn_acc, self.warn_vel, self.warn_pos = (x[1] for x in self.warns)
+        self.warn_counts = [x[1].number for x in self.warns]
+        self.warn_seen = sum(self.warn_counts)
+        self.body_id = {model.body(i).name: i for i in range(1, model.nbody)}
+        self.joint_slices = {model.joint(j).name: ms.joint_slice(model, j) for j in range(model.njnt)}
+        self.welds = np.array([model.equality(e[0]).id for e in edits[1]], dtype=int)
+        self.geom_friction = np.array([friction.get(model.geom(g).name, np.nan) for g in range(model.ngeom)])
+        self._map_bodies(layout, edits)
+        self._map_joints(layout, edits)
+        self._map_actuators_sensors(layout)
+
+    def clone(self, layout: ms.Layout) -> _Structure:
+        return _Structure(layout, self.edits, copy.deepcopy(self.model), self.movers, self.friction,
+                          copy.deepcopy(self.data))
+
+    def _map_bodies(self, layout: ms.Layout, edits: tuple) -> None:
+        row = {b: r for r, b in enumerate(layout.bodies)}
+        present = [b for b in layout.bodies if b in self.body_id]
+        pairs = [(row[b], self.body_id[b]) for b in present]
+        self.all3, self.all_id3, self.all4, self.all_id4 = ms.pose_index(pairs)
+        self.mv3, self.mv_id3, self.mv4, self.mv_id4 = ms.pose_index([(row[b], self.body_id[b]) for b in self.movers])
+        moving = set(self.movers)
+        self.still3 = ms.flat_index([r for r, b in enumerate(layout.bodies) if b not in moving], 3)
+        world = {b: w for entry in edits[0] for b, _rel, w in entry[1]}
+        fused = [b for b in layout.bodies if b not in self.body_id]
+        self.fused3, self.fused4 = (ms.flat_index([row[b] for b in fused], k) for k in (3, 4))
+        self.fused_pose = {b: world[b] for b in fused}
+        self.fused_pos = np.array([world[b][:3] for b in fused]).reshape(-1)
+        self.fused_quat = np.array([world[b][3:] for b in fused]).reshape(-1)
+        n = len(self.movers)
+        start = int(self.model.sensor_adr[self.model.sensor(f"{ms.VEL_PREFIX}lin_{self.movers[0]}").id]) if n else 0
+        self.lin, self.ang = slice(start, start + 3 * n), slice(start + 3 * n, start + 6 * n)
+
+    def _map_joints(self, layout: ms.Layout, edits: tuple) -> None:
+        frozen = {j: v for entry in edits[0] for j, v in entry[2]}
+        kept = [(r, self.joint_slices[j]) for r, j in enumerate(layout.qjoints) if j in self.joint_slices]
+        self.njoint = len(kept)
+        self.jrows = ms.flat_index([r for r, _ in kept], 1)
+        self.qadr, self.dadr = (ms.flat_index([js[k] for _, js in kept], 1) for k in (0, 2))
+        gone = [r for r, j in enumerate(layout.qjoints) if j not in self.joint_slices]
+        self.frozen_jrows = ms.flat_index(gone, 1)
+        self.frozen_q = np.array([frozen[layout.qjoints[r]][0] for r in gone])
+
+    def _map_actuators_sensors(self, layout: ms.Layout) -> None:
+        m = self.model
+        index = {a: i for i, a in enumerate(layout.actuators)}
+        self.act_src = ms.flat_index([index[m.actuator(a).name] for a in range(m.nu)], 1)
+        sensors = {m.sensor(s).name: s for s in range(m.nsensor)}
+        rows, src = [], []
+        for name, dim, adr in layout.sensors:
+            if name in sensors:
+                rows.extend(range(adr, adr + dim))
+                src.extend(range(int(m.sensor_adr[sensors[name]]), int(m.sensor_adr[sensors[name]]) + dim))
+        self.nsens, self.sens_rows, self.sens_src = len(rows), ms.flat_index(rows, 1), ms.flat_index(src, 1)
+        ours = ms.VEL_PREFIX
+        self.user_sd = sum(int(m.sensor_dim[s]) for n, s in sensors.items() if not n.startswith(ours))
+
+
+class MujocoCore(PhysicsCore):
+    """A physics core on MuJoCo. ``scene`` is primitives or an MJCF file (``scene.model``)."""
+
+    ENGINE = "mujoco"
+    PARAMS = (
+        Param("friction", 1.0, runtime=True, doc="sliding friction coefficient of every geom"),
+        Param("restitution", 0.0, runtime=True, doc="coefficient of restitution of contacts, 0..1"),
+        Param("gravity", (0.0, 0.0, -9.81), unit="m/s^2", runtime=True, dimension="acceleration",
+              doc="gravity vector"),
+        Param("substeps", 1, runtime=True, doc="MuJoCo steps per module step (timestep = period/substeps)"),
+    )
+
+    def __init__(self, name: str, scene: SceneSpec, *, scenario_dir: str | None = None, **params: Any):
+        super().__init__(name, scene, **params)
+        for key, value in self._param_values.items():
+            self._check_param(key, value)
+        self._period = DEFAULT_PERIOD_S
+        self._source = ms.SpecSource(name, scene, scenario_dir)
+        self._friction = self._source.friction
+        model, movers = ms.build_structure(name, self._source, NO_EDITS)
+        self._layout = ms.make_layout(model)
+        self._rows = {b: i for i, b in enumerate(self._layout.bodies)}
+        self._cache: OrderedDict[tuple, _Structure] = OrderedDict()
+        self._s = self._remember(_Structure(self._layout, NO_EDITS, model, movers, self._friction))
+        self._edits = NO_EDITS
+        self._apply_params(self._s)
+        mujoco.mj_forward(model, self._s.data)
+        self._ports_in, self._ports_out = self._make_ports()
+        self._unbind()
+
+    # -- ports --------------------------------------------------------------------------------------------
+    def _make_ports(self) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
+        lay, outs, ins = self._layout, [], []
+        if lay.bodies:
+            for block, q, n, unit in (("body_pos", "pos", 3, "m"), ("body_quat", "quat", 4, "1"),
+                                      ("body_linvel", "linvel", 3, "m/s"),
+                                      ("body_angvel", "angvel", 3, "rad/s")):
+                outs.append(Port(block, (len(lay.bodies), n), unit, doc=f"{q} of every body"))
+                outs += [Port(f"{b}.{q}", (n,), unit, view_of=(block, i)) for i, b in enumerate(lay.bodies)]
+        if lay.qjoints:
+            units = list(zip(*lay.qunits, strict=True))
+            uq, uf = (u[0] if len(set(u)) == 1 else "1" for u in units)
+            uqd = f"{uq}/s" if uq != "1" else "1"
+            outs += [Port("joint_q", (len(lay.qjoints),), uq), Port("joint_qd", (len(lay.qjoints),), uqd)]
+            ins.append(Port("joint_force", (len(lay.qjoints),), uf))
+            for i, (j, (q, f)) in enumerate(zip(lay.qjoints, lay.qunits, strict=True)):
+                outs += [Port(f"{j}.q", (), q, view_of=("joint_q", i)),
+                         Port(f"{j}.qd", (), f"{q}/s", view_of=("joint_qd", i))]
+                ins.append(Port(f"{j}.force", (), f, view_of=("joint_force", i)))
+        if lay.actuators:
+            ins.append(Port("ctrl", (len(lay.actuators),), "1"))
+            ins += [Port(f"{a}.ctrl", (), "1", view_of=("ctrl", i)) for i, a in enumerate(lay.actuators)]
+        if lay.sensors:
+            outs.append(Port("sensordata", (lay.nsensordata,), "1", doc="all sensor values, MuJoCo order"))
+            for dim, members in self._sensor_groups().items():
+                outs.append(Port(f"sensor_d{dim}", (len(members), dim), "1"))
+                outs += [Port(f"sensor.{n}", (dim,), "1", view_of=(f"sensor_d{dim}", k))
+                         for k, (n, _a) in enumerate(members)]
+        return tuple(ins), tuple(outs)
+
+    def _sensor_groups(self) -> dict[int, list[tuple[str, int]]]:
+        groups: dict[int, list[tuple[str, int]]] = {}
+        for name, dim, adr in self._layout.sensors:
+            groups.setdefault(dim, []).append((name, adr))
+        return groups
+
+    def inputs(self) -> Sequence[Port]:
+        return self._ports_in
+
+    def outputs(self) -> Sequence[Port]:
+        return self._ports_out
+
+    def _unbind(self) -> None:
+        """Private buffers in place of the bus: the step code never tests for missing ports."""
+        lay = self._layout
+        nb, nj, ns = len(lay.bodies), len(lay.qjoints), lay.nsensordata
+        self._pos, self._quat, self._lin, self._ang = (np.zeros(k * nb) for k in (3, 4, 3, 3))
+        self._q, self._qd, self._sd = np.zeros(nj), np.zeros(nj), np.zeros(ns)
+        self._force, self._ctrl = np.zeros(nj), np.zeros(len(lay.actuators))
+        self._groups: list[tuple[np.ndarray, np.ndarray]] = []
+        self._copy_back: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def bind(self) -> None:
+        self._unbind()
+        for attr, key in (("_pos", "body_pos"), ("_quat", "body_quat"), ("_lin", "body_linvel"),
+                          ("_ang", "body_angvel"), ("_q", "joint_q"), ("_qd", "joint_qd"), ("_sd", "sensordata")):
+            if self.out.get(key) is not None:
+                setattr(self, attr, self._flat(self.out[key]))
+        for attr, key in (("_force", "joint_force"), ("_ctrl", "ctrl")):
+            if self.inp.get(key) is not None:
+                setattr(self, attr, np.asarray(self.inp[key]).reshape(-1))
+        for dim, members in self._sensor_groups().items():
+            block = self.out.get(f"sensor_d{dim}")
+            if block is not None:
+                self._groups.append((block, np.array([[a + k for k in range(dim)] for _n, a in members], dtype=int)))
+
+    def _flat(self, array: np.ndarray) -> np.ndarray:
+        """A flat view of an output array; a buffer copied back after each write if it has none."""
+        flat = array.reshape(-1)
+        if not np.shares_memory(flat, array):
+            self._copy_back.append((array, flat))
+        return flat
+
+    # -- lifecycle --------------------------------------------------------------------------------------------
+    def setup(self, ctx: SetupContext) -> None:
+        self._period = ctx.period_ns * 1e-9
+        self._apply_params(self._s)
+        mujoco.mj_forward(self._s.model, self._s.data)
+
+    def start(self, t_ns: int) -> None:
+        self._write_all()
+
+    def step(self, t_ns: int, dt_ns: int) -> None:
+        s = self._s
+        if s.njoint:
+            s.qfrc[s.dadr] = self._force[s.jrows]
+        if len(s.ctrl):
+            s.ctrl[:] = self._ctrl[s.act_src]
+        mujoco.mj_step2(s.model, s.data)
+        if self._nsub > 1:
+            mujoco.mj_step(s.model, s.data, self._nsub - 1)
+        mujoco.mj_step1(s.model, s.data)
+        bad = s.warn_pos.number + s.warn_vel.number + s.warn_acc.number
+        if bad != s.warn_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
+            raise PhysicsDivergedError(self.name, "step", None, self._divergence(s, bad))
+        self._write_outputs(s)
+
+    def get_state(self) -> tuple:
+        s = self._s
+        arr = np.empty(s.nstate)
+        mujoco.mj_getState(s.model, s.data, arr, STATE)
+        sensors = s.sensordata[:s.user_sd].copy() if s.user_sd else None
+        return (self._edits, arr, sensors)
+
+    def set_state(self, state: tuple) -> None:
+        edits, arr, sensors = state
+        if edits is not self._edits and edits != self._edits:
+            self._activate(edits, carry=False)
+        s = self._s
+        mujoco.mj_setState(s.model, s.data, np.asarray(arr, dtype=np.float64), STATE)
+        mujoco.mj_step1(s.model, s.data)
+        if sensors is not None:
+            s.sensordata[:len(sensors)] = sensors  # acceleration-stage sensors of the last step
+        self._write_all()
+
+    def on_param(self, name: str, value: Any) -> None:
+        self._check_param(name, value)
+        self._apply_params(self._s)
+
+    def close(self) -> None:
+        self._cache.clear()
+
+    def __deepcopy__(self, memo: dict) -> MujocoCore:
+        """An independent copy (`fork`, `World.fork`): model and data copied, unbound; the cache of
+        other structures starts empty (they are recompiled, identically, when needed)."""
+        twin = copy.copy(self)
+        memo[id(self)] = twin
+        twin.inp, twin.out = {}, {}
+        twin._unbind()
+        twin._param_values = dict(self._param_values)
+        twin._source = self._source.copy()
+        twin._cache = OrderedDict()
+        twin._s = twin._remember(self._s.clone(self._layout))
+        return twin
+
+    def refresh_outputs(self) -> None:
+        """Rewrite every output from the current state (the world calls this after `place`)."""
+        self._write_all()
+
+    # -- parameters -----------------------------------------------------------------------------------------
+    def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
+        spec = self.param_specs().get(name)
+        if spec is not None:  # refuse a bad value before it becomes the parameter's value
+            self._check_param(name, spec.convert(value))
+        super().set_param(name, value, running=running)
+
+    def _check_param(self, name: str, value: Any) -> None:
+        bad = {"friction": lambda v: v < 0, "restitution": lambda v: not 0 <= v <= 1,
+               "substeps": lambda v: v < 1, "gravity": lambda v: not np.all(np.isfinite(v))}
+        if name in bad and bad[name](value):
+            raise ms.fail(self.name, f"parameter {name} = {value!r} is out of range")
+
+    def _apply_params(self, s: _Structure) -> None:
+        """Apply every run-time parameter to a structure's model (idempotent)."""
+        m, p = s.model, self._param_values
+        self._nsub = int(p["substeps"])
+        dt = self._period / self._nsub
+        m.opt.timestep = dt
+        m.opt.gravity[:] = p["gravity"]
+        fr = float(p["friction"])
+        m.geom_friction[:, 0] = np.where(np.isnan(s.geom_friction), fr, s.geom_friction)
+        solref, solimp = ms.contact_params(float(p["restitution"]), dt, float(np.linalg.norm(p["gravity"])))
+        m.geom_solref[:] = solref
+        m.geom_solimp[:] = solimp
+        if m.npair:
+            m.pair_solref[:], m.pair_solimp[:], m.pair_friction[:, :2] = solref, solimp, fr
+        if len(s.welds):
+            m.eq_solref[s.welds] = (2.0 * dt, 1.0)
+            m.eq_solimp[s.welds] = (0.99, 0.99, 0.001, 0.5, 2.0)
+
+    # -- outputs ------------------------------------------------------------------------------------------------
+    def _write_outputs(self, s: _Structure) -> None:
+        """Outputs that can change in a step: moving bodies, joints, sensors."""
+        self._pos[s.mv3] = s.xpos[s.mv_id3]
+        self._quat[s.mv4] = s.xquat[s.mv_id4]
+        self._lin[s.mv3] = s.sensordata[s.lin]
+        self._ang[s.mv3] = s.sensordata[s.ang]
+        if s.njoint:
+            self._q[s.jrows] = s.qpos[s.qadr]
+            self._qd[s.jrows] = s.qvel[s.dadr]
+        if s.nsens:
+            self._sd[s.sens_rows] = s.sensordata[s.sens_src]
+            for block, idx in self._groups:
+                np.take(self._sd, idx, out=block)
+        for array, flat in self._copy_back:
+            np.copyto(array, flat.reshape(array.shape))
+
+    def _write_all(self) -> None:
+        """Every output, with the constant ones of static and frozen bodies and joints."""
+        s = self._s
+        self._pos[s.all3] = s.xpos[s.all_id3]
+        self._quat[s.all4] = s.xquat[s.all_id4]
+        self._pos[s.fused3] = s.fused_pos
+        self._quat[s.fused4] = s.fused_quat
+        self._lin[s.still3] = 0.0
+        self._ang[s.still3] = 0.0
+        self._q[s.frozen_jrows] = s.frozen_q
+        self._qd[s.frozen_jrows] = 0.0
+        self._write_outputs(s)
+
+    def _divergence(self, s: _Structure, bad: int) -> str:
+        """Which joint diverged first (acceleration before velocity before position)."""
+        now = [w.number for _what, w in s.warns]
+        what, index = next(((what, int(w.lastinfo)) for (what, w), n0, n in zip(s.warns, s.warn_counts, now,
+                                                                                strict=True) if n > n0))
+        s.warn_counts, s.warn_seen = now, bad
+        m = s.model
+        if what == "position":
+            j = int(np.searchsorted(m.jnt_qposadr, index, side="right")) - 1
+        else:
+            j = int(m.dof_jntid[index]) if m.nv else -1
+        if j < 0:
+            return f"{what}s became NaN, infinite or larger than 1e10"
+        body = m.body(int(m.jnt_bodyid[j])).name
+        return (f"the {what} of joint {m.joint(j).name!r} (body {body!r}) became NaN, infinite or "
+                f"larger than 1e10; check the inputs, or reduce forces or the timestep (substeps)")
+
+    # -- scene queries --------------------------------------------------------------------------------------
+    def objects(self) -> list[str]:
+        return list(self._layout.objects)
+
+    def bodies(self) -> list[str]:
+        return list(self._layout.bodies)
+
+    def joints(self) -> list[str]:
+        return list(self._layout.joints)
+
+    def _row(self, name: str) -> int:
+        row = self._rows.get(name)
+        if row is None:
+            raise self._unknown("body", name, self._layout.bodies)
+        return row
+
+    def _unknown(self, kind: str, name: str, known: Sequence[str]) -> DynabrainError:
+        listed = ", ".join(known[:12]) + (", ..." if len(known) > 12 else "") if known else "none"
+        return ms.fail(self.name, f"no {kind} {name!r}" + did_you_mean(str(name), known) + f"; {kind}s: {listed}")
+
+    def body_info(self, name: str) -> BodyInfo:
+        row, lay = self._row(name), self._layout
+        return BodyInfo(name=name, free=name in lay.free, parent=lay.parents[row], geoms=lay.geoms[name])
+
+    def body_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        self._row(name)
+        s = self._s
+        bid = s.body_id.get(name)
+        if bid is None:
+            pose = s.fused_pose[name]
+            return np.array(pose[:3]), np.array(pose[3:])
+        d = s.data
+        return d.xpos[bid].copy(), d.xquat[bid].copy()
+
+    def body_velocity(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        self._row(name)
+        s = self._s
+        bid = s.body_id.get(name)
+        res = np.zeros(6)
+        if bid is not None:
+            mujoco.mj_objectVelocity(s.model, s.data, mujoco.mjtObj.mjOBJ_XBODY, bid, res, 0)
+        return res[3:].copy(), res[:3].copy()
+
+    # -- structural edits -----------------------------------------------------------------------------------
+    @property
+    def selection(self) -> tuple[str, ...]:
+        frozen = {entry[0] for entry in self._edits[0]}
+        return tuple(o for o in self._layout.objects if o not in frozen)
+
+    def make(self, objects: Sequence[str]) -> None:
+        chosen = self._objects(objects)
+        frozen, welds, groups = self._edits
+        kept = {entry[0]: entry for entry in frozen}
+        entries = tuple(kept.get(o) or self._freeze_entry(o) for o in self._layout.objects if o not in chosen)
+        self._edit((entries, welds, groups))
+
+    def _objects(self, objects: Sequence[str]) -> set[str]:
+        out = set()
+        for o in [objects] if isinstance(objects, str) else objects:
+            if o not in self._layout.objects:
+                if o in self._rows:
+                    top = o
+                    while self._layout.parents[self._rows[top]] is not None:
+                        top = self._layout.parents[self._rows[top]]
+                    raise ms.fail(self.name, f"{o!r} is not an object but a body of object {top!r}")
+                raise self._unknown("object", o, self._layout.objects)
+            out.add(o)
+        return out
+
+    def _freeze_entry(self, obj: str) -> tuple:
+        """(object, ((body, pose in parent or None, world pose), ...), ((joint, qpos), ...)), now."""
+        s, lay = self._s, self._layout
+        bodies, joints = [], []
+        for b in lay.subtree[obj]:
+            bid = s.body_id[b]
+            rel = ms.relative_pose(s.model, s.data, bid) if lay.body_joints[b] else None
+            bodies.append((b, rel, (*map(float, s.data.xpos[bid]), *map(float, s.data.xquat[bid]))))
+            for j in lay.body_joints[b]:
+                qa, nq, _da, _nv = s.joint_slices[j]
+                joints.append((j, tuple(map(float, s.qpos[qa:qa + nq]))))
+        return (obj, tuple(bodies), tuple(joints))
+
+    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
+        self._row(a)
+        self._row(b)
+        if a == b:
+            raise ms.fail(self.name, f"make_joint needs two different bodies, got {a!r} twice")
+        name = name or f"joint_{a}_{b}"
+        frozen, welds, groups = self._edits
+        model = self._s.model
+        taken = {w[0] for w in welds} | set(self._layout.joints) | {model.equality(e).name for e in range(model.neq)}
+        if name in taken:
+            raise ms.fail(self.name, f"a joint named {name!r} exists already")
+        data = ms.weld_data(*self.body_pose(a), *self.body_pose(b))
+        self._edit((frozen, (*welds, (name, a, b, data)), groups))
+        return name
+
+    def remove_joint(self, name: str) -> None:
+        frozen, welds, groups = self._edits
+        made = [w[0] for w in welds]
+        if name not in made:
+            if name in self._layout.joints:
+                raise ms.fail(self.name, f"{name!r} is a joint of the model; only joints made by make_joint "
+                              "can be removed")
+            raise self._unknown("joint made by make_joint", name, made)
+        self._edit((frozen, tuple(w for w in welds if w[0] != name), groups))
+
+    def no_collision(self, objects: Sequence[str]) -> None:
+        names: list[str] = []
+        for o in [objects] if isinstance(objects, str) else objects:
+            self._row(o)
+            if o not in names:
+                names.append(o)
+        if len(names) < 2:
+            raise ms.fail(self.name, f"no_collision needs at least two objects, got {names}")
+        frozen, welds, groups = self._edits
+        group = tuple(sorted(names))
+        if group not in groups:
+            self._edit((frozen, welds, (*groups, group)))
+
+    def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
+        self._row(body)
+        s, lay = self._s, self._layout
+        if body not in lay.free:
+            raise ms.fail(self.name, f"body {body!r} has no free joint; place moves free bodies")
+        joint = next((j for j in lay.body_joints[body] if s.joint_slices.get(j, (0, 0))[1] == 7), None)
+        if joint is None:
+            raise ms.fail(self.name, f"body {body!r} is frozen; select its object with make() first")
+        p = np.asarray(pos, dtype=np.float64)
+        q = np.asarray(s.qpos[s.joint_slices[joint][0] + 3:][:4] if quat is None else quat, dtype=np.float64)
+        if p.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(p)) and np.linalg.norm(q) > 0):
+            raise ms.fail(self.name, f"place({body!r}): pos must be 3 numbers and quat 4 (w, x, y, z), not 0")
+        qa, _nq, da, _nv = s.joint_slices[joint]
+        s.qpos[qa:qa + 3], s.qpos[qa + 3:qa + 7] = p, q / np.linalg.norm(q)
+        s.qvel[da:da + 6] = 0.0
+        mujoco.mj_forward(s.model, s.data)
+        self._write_all()
+
+    # -- structures -----------------------------------------------------------------------------------------
+    def _remember(self, s: _Structure) -> _Structure:
+        self._cache[s.edits] = s
+        self._cache.move_to_end(s.edits)
+        while len(self._cache) > CACHE_SIZE:
+            self._cache.popitem(last=False)
+        return s
+
+    def _structure(self, edits: tuple) -> _Structure:
+        s = self._cache.get(edits)
+        if s is None:
+            model, movers = ms.build_structure(self.name, self._source, edits)
+            s = _Structure(self._layout, edits, model, movers, self._friction)
+        return self._remember(s)
+
+    def _activate(self, edits: tuple, *, carry: bool) -> None:
+        old, new = self._s, self._structure(edits)
+        self._apply_params(new)
+        if carry:
+            ms.carry_over(old, new)
+            mujoco.mj_forward(new.model, new.data)
+        self._s, self._edits = new, edits
+
+    def _edit(self, edits: tuple) -> None:
+        if edits != self._edits:
+            self._activate(edits, carry=True)
+            self._write_all()
