@@ -24,6 +24,7 @@ Choices (see also `mujoco_scene`):
 from __future__ import annotations
 
 import copy
+import logging
 from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
@@ -37,6 +38,18 @@ from dynabrain.orchestrator.module import Param, Port, SetupContext
 from dynabrain.orchestrator.suggest import did_you_mean
 
 from . import mujoco_scene as ms
+
+_log = logging.getLogger("dynabrain.mujoco")
+
+
+def _warning_to_log(message: str) -> None:
+    _log.warning("MuJoCo: %s", message.strip())
+
+
+if mujoco.get_mju_user_warning() is None:
+    # MuJoCo's default appends warnings to MUJOCO_LOG.TXT in the working folder; the core writes no
+    # files, and divergence is detected from the data's warning counters, which this keeps intact.
+    mujoco.set_mju_user_warning(_warning_to_log)
 
 _S = mujoco.mjtState
 STATE = int(_S.mjSTATE_INTEGRATION) & ~int(_S.mjSTATE_QFRC_APPLIED) & ~int(_S.mjSTATE_XFRC_APPLIED)

@@ -235,7 +235,7 @@ def test_no_collision_lets_a_box_fall_through_another():
 
 
 def test_divergence_raises_and_names_the_joint(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # MuJoCo appends its warnings to MUJOCO_LOG.TXT in the working folder
+    monkeypatch.chdir(tmp_path)  # MuJoCo's default would append its warnings to MUJOCO_LOG.TXT here
     core, inp, out = make_core(*scene_for_state())
     run(core, 5)
     saved = core.get_state()
@@ -251,6 +251,7 @@ def test_divergence_raises_and_names_the_joint(tmp_path, monkeypatch):
     inp2["arm.force"][...] = np.nan
     with pytest.raises(PhysicsDivergedError):
         core2.step(0, DT)
+    assert not list(tmp_path.iterdir())  # the core writes no files
 
 
 def test_unknown_names_and_features_are_clear_errors():

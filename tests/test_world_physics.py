@@ -1,0 +1,103 @@
+"""The World with the real MuJoCo core: failures roll back, forks predict, shipped modules pass
+check_module, scene edits name unknown objects."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dynabrain.modules.mujoco_core import MujocoCore
+from dynabrain.modules.probes import BounceMeter
+from dynabrain.orchestrator.checks import check_module
+from dynabrain.orchestrator.core import COLORS, BodySpec, JointSpec, SceneSpec
+from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.orchestrator.world import World
+
+
+def scene() -> SceneSpec:
+    return SceneSpec(bodies=(
+        BodySpec("floor", "plane", ()),
+        BodySpec("aa", "box", (0.1, 0.1, 0.1), pos=(0.05, 0.05, 0.6), mass=0.05, color=COLORS["blue"]),
+        BodySpec("bb", "box", (0.2, 0.2, 0.15), pos=(0.0, 0.0, 0.8), mass=0.06, color=COLORS["yellow"]),
+        BodySpec("pole", "capsule", (0.02, 0.4), pos=(1.0, 0.0, 0.5), mass=0.3,
+                 joint=JointSpec("hinge", name="pivot", axis=(0.0, 1.0, 0.0), anchor=(0.0, 0.0, 0.2))),
+    ))
+
+
+def world() -> World:
+    return World("w", step="2ms", history=100, core=MujocoCore("core", scene()))
+
+
+def test_divergence_rolls_back_the_tick_and_the_world_goes_on():
+    w = world()
+    w.tick(10)
+    w.set("core.pivot.force", 1e300)
+    before = w.snapshot()
+    with pytest.raises(PhysicsDivergedError) as err:
+        w.tick()
+    assert err.value.module == "core" and err.value.tick == 10 and "pivot" in str(err.value)
+    assert w.tick_count == 10
+    assert np.array_equal(w.snapshot().bus, before.bus)
+    w.set("core.pivot.force", 0.0)
+    w.tick(50)
+    assert np.isfinite(w.get("aa.pos")).all()
+    w.close()
+
+
+def test_fork_predicts_without_touching_the_world():
+    w = world()
+    w.tick(20)
+    here = w.snapshot()
+    plan = w.fork()
+    plan.set("core.friction", 0.1)
+    plan.make(["aa"])
+    plan.tick(300)
+    assert plan.get("aa.pos")[2] < 0.06
+    assert np.array_equal(w.snapshot().bus, here.bus) and w.core.selection == tuple(w.core.objects())
+    same = w.fork()
+    same.tick(100)
+    w.tick(100)
+    assert np.array_equal(same.snapshot().bus, w.snapshot().bus)
+    for x in (plan, same, w):
+        x.close()
+
+
+def test_scene_edits_name_unknown_objects():
+    w = world()
+    with pytest.raises(DynabrainError, match=r"make\(\): unknown object 'aaa' \(did you mean 'aa'\?\)"):
+        w.make(["aaa"])
+    with pytest.raises(DynabrainError, match=r"make_joint\(\): unknown body 'bx'"):
+        w.make_joint("aa", "bx")
+    with pytest.raises(DynabrainError, match="matches no body"):
+        w.no_collision(["zz*"])
+    with pytest.raises(DynabrainError, match="did you mean 'core.restitution'"):
+        w.set("core.restitutio", 0.5)
+    with pytest.raises(DynabrainError, match="is an output"):
+        w.set("aa.pos", [0, 0, 1])
+    w.close()
+
+
+def test_make_joint_holds_bodies_together():
+    w = world()
+    w.tick(100)  # bb has landed on aa's corner
+    w.make_joint("aa", "bb")
+    rel = w.get("bb.pos") - w.get("aa.pos")
+    w.tick(400)
+    assert np.allclose(w.get("bb.pos") - w.get("aa.pos"), rel, atol=2e-3)
+    w.close()
+
+
+def test_no_collision_lets_bodies_pass_through():
+    w = world()
+    w.no_collision(["aa", "bb"])
+    w.tick(600)
+    assert abs(w.get("bb.pos")[2] - 0.075) < 3e-3  # bb fell through aa onto the floor
+    w.close()
+
+
+def test_check_module_on_the_core_and_the_bounce_meter():
+    check_module(MujocoCore("core", scene())).assert_ok()
+    meter = BounceMeter("meter", radius=0.05)
+    report = check_module(meter, core=MujocoCore("core", scene()))
+    report.assert_ok()
+    assert "fork" in report.checked
