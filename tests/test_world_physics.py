@@ -70,7 +70,7 @@ def test_scene_edits_name_unknown_objects():
         w.make_joint("aa", "bx")
     with pytest.raises(DynabrainError, match="matches no body"):
         w.no_collision(["zz*"])
-    with pytest.raises(DynabrainError, match="did you mean 'core.restitution'"):
+    with pytest.raises(DynabrainError, match=r"did you mean 'core\.restitution'"):
         w.set("core.restitutio", 0.5)
     with pytest.raises(DynabrainError, match="is an output"):
         w.set("aa.pos", [0, 0, 1])
