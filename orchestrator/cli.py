@@ -40,11 +40,10 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
         realtime: bool = typer.Option(False, "--realtime", help="pace the run at real time"),
         duration: str | None = typer.Option(None, help="override world.duration (e.g. 2s)"),
         log: Path | None = typer.Option(None, "--log", help="record the run to an MCAP file"),
+        live: bool = typer.Option(False, "--live", help="serve the run to Foxglove over WebSocket (loopback)"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar")) -> None:
     """Run a scenario to its end and check its expectations."""
     sc = _load(scenario)
-    if log is not None or sc.model.log.mcap:
-        err_console.print("note: MCAP logging is not available in this version; running without a log")
     if duration is not None:
         from .units import parse_duration_ns
 
@@ -53,6 +52,9 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
         world = sc.build()
     except ScenarioError as exc:
         _fail_scenario(exc)
+    from .cli_log import attach_run_outputs
+
+    outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[t]}"),
                   TimeRemainingColumn(), console=console, transient=True, disable=quiet) as bar:
         task = bar.add_task(sc.model.name, total=sc.duration_ns // world.dt_ns, t="")
@@ -62,6 +64,7 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
 
         result = run_scenario(sc, world, progress=progress, realtime=True if realtime else None)
     history = world.history.describe()
+    outputs.finish(result)
     world.close()
     _summary(result, history)
     raise typer.Exit(0 if result.ok else 1)
@@ -115,6 +118,17 @@ def check(scenario: Path = typer.Argument(..., help="scenario YAML file")) -> No
         console.print(f"expectations: {len(sc.expectations)}; events: {len(sc.model.events)}")
     finally:
         world.close()
+
+
+def _register_plugins() -> None:
+    """Command groups that live in their own files (FMU authoring, logs)."""
+    from . import cli_fmu, cli_log
+
+    cli_fmu.register(app)
+    cli_log.register(app)
+
+
+_register_plugins()
 
 
 def main() -> None:

@@ -47,6 +47,9 @@ class ModuleCfg(_Strict):
     python: str | None = None
     """``package.module:Class``."""
     fmu: str | None = None
+    """An FMU: a ``.fmu`` file or a source folder under ``fmus/`` (built on first use)."""
+    isolate: bool = False
+    """Run the FMU in a process of its own (a crash is reported, not fatal)."""
     params: dict[str, Any] = {}
     period: str | int | float | None = None
     targets: list[str] = []
@@ -227,8 +230,14 @@ class _Builder:
 
     def make_module(self, cfg: ModuleCfg, path: Path) -> Module | None:
         if cfg.fmu is not None:
-            self.report((*path, "fmu"), "FMU modules need the FMU adapter, which this version does not have yet")
-            return None
+            from .fmu import make_fmu_module
+
+            try:
+                return make_fmu_module(cfg.name, cfg.fmu, base_dir=self.sc.dir, params=cfg.params,
+                                       targets=cfg.targets, isolate=cfg.isolate)
+            except DynabrainError as exc:
+                self.report((*path, "fmu"), str(exc))
+                return None
         if cfg.python is None:
             self.report(path, f"module {cfg.name!r} needs `python: package.module:Class` (or `fmu:`)")
             return None

@@ -313,8 +313,7 @@ class World:
             if isinstance(module, PhysicsCore):
                 self._core = module
             self._dirty = True
-            self._emit("module_added", module=module.name, cls=f"{type(module).__module__}:{type(module).__name__}",
-                       period_ns=period_ns)
+            self._emit("module_added", module=module.name, spec=module_spec(module, period_ns, conns))
 
     def remove_module(self, name: str) -> None:
         """Remove a module at the current tick. Inputs it drove keep their last value. The module
@@ -639,6 +638,19 @@ class World:
                             "memory_bytes": self._history.memory_bytes()},
                 "selection": list(self._core.selection) if self._core is not None else [],
             }
+
+
+def module_spec(module: Module, period_ns: int, connections: Sequence[Connection] = ()) -> dict[str, Any]:
+    """A plain description from which the same module can be made again (logs, replay, the bridge):
+    the scenario's module syntax, with parameters in SI."""
+    params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in module.params.items()}
+    spec: dict[str, Any] = {"name": module.name, "python": f"{type(module).__module__}:{type(module).__qualname__}",
+                            "params": params, "period": f"{period_ns}ns"}
+    if module.targets:
+        spec["targets"] = list(module.targets)
+    if connections:
+        spec["connect"] = [[c.src, c.dst, {"delay": True}] if c.delay else [c.src, c.dst] for c in connections]
+    return spec
 
 
 def as_connection(value: Connection | Sequence[Any]) -> Connection:
