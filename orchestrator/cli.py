@@ -121,11 +121,12 @@ def check(scenario: Path = typer.Argument(..., help="scenario YAML file")) -> No
 
 
 def _register_plugins() -> None:
-    """Command groups that live in their own files (FMU authoring, logs)."""
-    from . import cli_fmu, cli_log
+    """Command groups that live in their own files (FMU authoring, logs, the Zenoh bridge)."""
+    from . import cli_fmu, cli_log, cli_serve
 
     cli_fmu.register(app)
     cli_log.register(app)
+    cli_serve.register(app)
 
 
 _register_plugins()

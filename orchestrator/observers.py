@@ -17,11 +17,17 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class WorldEvent:
-    """Something that happened to the world at a tick: ``kind`` and a plain ``detail`` dict."""
+    """Something that happened to the world at a tick: ``kind`` and a plain ``detail`` dict.
+
+    ``source`` is ``"scenario"`` for an edit made by one of the scenario's scheduled events (a replay
+    of the scenario makes it again by itself) and ``"api"`` for anything else (a brain's call, a
+    bridge client): a replay must apply those from the log.
+    """
 
     tick: int
     kind: str
     detail: dict[str, Any] = field(default_factory=dict)
+    source: str = "api"
 
 
 class WorldView:

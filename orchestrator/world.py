@@ -62,6 +62,7 @@ class World:
         self._thread: threading.Thread | None = None
         self._stop_flag = threading.Event()
         self._thread_error: BaseException | None = None
+        self._source = "api"  # who is editing: "scenario" while scheduled actions run
         self.error: BaseException | None = None
         if core is not None:
             self.add_module(core)
@@ -152,9 +153,11 @@ class World:
         try:
             events = self._scheduled.get(n)
             if events:
+                self._source = "scenario"
                 for label, action in events:
                     current = f"event {label}"
                     action(self)
+                self._source = "api"
             structure = self._structure
             buf = self._buf
             if structure.delayed_src is not None:
@@ -169,8 +172,10 @@ class World:
                     buf[step.dst] = buf[step.src]
                 rec.module.step(t_ns, rec.period_ns)
         except Exception as exc:  # roll back to the last good tick, then report
+            self._source = "api"
             raise self._rollback_failed_tick(n, current, exc) from exc
         except BaseException:  # KeyboardInterrupt and the like: roll back, re-raise as is
+            self._source = "api"
             self._apply(self._history.top)
             self._dirty = False
             raise
@@ -516,7 +521,7 @@ class World:
     def _emit(self, kind: str, **detail: Any) -> None:
         if not self._observers:
             return
-        event = WorldEvent(self._tick, kind, detail)
+        event = WorldEvent(self._tick, kind, detail, self._source)
         for obs in self._observers:
             obs.on_event(self._view, event)
 

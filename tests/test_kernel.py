@@ -336,3 +336,19 @@ def test_check_module_finds_a_module_that_forgets_state():
 
     report = check_module(Leaky("leaky"))
     assert not report.ok and any("replay" in p for p in report.problems)
+
+
+def test_events_say_whether_the_scenario_or_a_caller_made_them():
+    kinds = []
+
+    class Obs(Observer):
+        def on_event(self, view, event):
+            kinds.append((event.kind, event.source, event.tick))
+
+    w = World(step="1ms")
+    w.add_module(Gain("g"))
+    w.observe(Obs())
+    w.at("2ms", "set gain", lambda world: world.set("g.k", 5.0))
+    w.tick(3)
+    w.set("g.k", 1.0)
+    assert kinds == [("param", "scenario", 2), ("param", "api", 3)]
