@@ -231,12 +231,13 @@ class _Builder:
     def make_module(self, cfg: ModuleCfg, path: Path) -> Module | None:
         if cfg.fmu is not None:
             from .fmu import make_fmu_module
+            from .fmu.errors import FMUError
 
             try:
                 return make_fmu_module(cfg.name, cfg.fmu, base_dir=self.sc.dir, params=cfg.params,
                                        targets=cfg.targets, isolate=cfg.isolate)
             except DynabrainError as exc:
-                self.report((*path, "fmu"), str(exc))
+                self.report((*path, "fmu" if isinstance(exc, FMUError) else "params"), str(exc))
                 return None
         if cfg.python is None:
             self.report(path, f"module {cfg.name!r} needs `python: package.module:Class` (or `fmu:`)")

@@ -260,8 +260,14 @@ class World:
             for rec in self._structure.records:
                 bindings[rec.name] = (rec.module.inp, rec.module.out)
                 rec.module.inp, rec.module.out = {}, {}
+            clones: dict[str, Module] = {}
             try:
-                clones = {rec.name: copy.deepcopy(rec.module, memo) for rec in self._structure.records}
+                for rec in self._structure.records:
+                    clones[rec.name] = copy.deepcopy(rec.module, memo)
+            except BaseException:
+                for clone in clones.values():  # free what was copied (FMU instances, processes)
+                    _close_quietly(clone)
+                raise
             finally:
                 for rec in self._structure.records:
                     rec.module.inp, rec.module.out = bindings[rec.name]
@@ -648,9 +654,14 @@ class World:
 def module_spec(module: Module, period_ns: int, connections: Sequence[Connection] = ()) -> dict[str, Any]:
     """A plain description from which the same module can be made again (logs, replay, the bridge):
     the scenario's module syntax, with parameters in SI."""
-    params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in module.params.items()}
-    spec: dict[str, Any] = {"name": module.name, "python": f"{type(module).__module__}:{type(module).__qualname__}",
-                            "params": params, "period": f"{period_ns}ns"}
+    own = getattr(module, "scenario_spec", None)  # modules not made from a class path (FMUs) say how
+    if own is not None:
+        spec: dict[str, Any] = dict(own())
+    else:
+        params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in module.params.items()}
+        spec = {"name": module.name, "python": f"{type(module).__module__}:{type(module).__qualname__}",
+                "params": params}
+    spec["period"] = f"{period_ns}ns"
     if module.targets:
         spec["targets"] = list(module.targets)
     if connections:

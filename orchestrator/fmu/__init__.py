@@ -1,4 +1,13 @@
-"""The FMU adapter: FMI 2.0 / 3.0 co-simulation FMUs as modules (to be built)."""
+"""The FMU adapter: FMI 2.0 / 3.0 co-simulation FMUs as modules, and FMU authoring.
+
+    module = make_fmu_module("servo", "fmus/servo", base_dir=".", params={"kp": 80.0}, targets=[])
+    world.add_module(module)
+
+Layers, bottom up: `api` (one method per FMI call, one status checkpoint), `fastpath` (a step in
+one crossing into C), `states` (FMU states for history), `session` (one instance's life),
+`module` (the Module facade), `isolate` / `worker` (an FMU in its own process). Authoring: `spec`
+(fmu.yaml), `codegen`, `build` (compile, package, cache), `check` (`check_fmu`), `scaffold`.
+"""
 
 from __future__ import annotations
 
@@ -6,9 +15,44 @@ from typing import Any
 
 from ..errors import DynabrainError
 from ..module import Module
+from .errors import FMUBuildError, FMUCallError, FMUCrashError, FMUDiscardError, FMUError
+
+__all__ = ["FMUBuildError", "FMUCallError", "FMUCrashError", "FMUDiscardError", "FMUError", "load_fmu_info",
+           "make_fmu_module"]
+
+
+def load_fmu_info(fmu: str, *, base_dir: str = "."):
+    """Resolve ``fmu`` (a ``.fmu`` file or a source folder, ``@fmi3`` to pick a version), build it
+    if it is a source folder, and read its model description."""
+    from .build import ensure_built
+    from .info import read_fmu_info
+    from .paths import resolve, split_version
+
+    ref, version = split_version(fmu)
+    path = resolve(ref, base_dir)
+    return read_fmu_info(ensure_built(path, version), label=fmu)
 
 
 def make_fmu_module(name: str, fmu: str, *, base_dir: str, params: dict[str, Any], targets: list[str],
                     isolate: bool = False) -> Module:
-    """A module for the FMU at ``fmu`` (a ``.fmu`` file or a source folder, relative to ``base_dir``)."""
-    raise DynabrainError(f"module {name!r}: FMU modules need the FMU adapter, which this version does not have yet")
+    """A module for the FMU at ``fmu`` (a ``.fmu`` file or a source folder, relative to ``base_dir``
+    or one of its parent folders). ``isolate``: run it in a process of its own."""
+    info = load_fmu_info(fmu, base_dir=base_dir)
+    _check_params(name, info, params)
+    if isolate:
+        from .isolate import IsolatedFMUModule
+
+        return IsolatedFMUModule(name, info, source=fmu, targets=targets, **params)
+    from .module import FMUModule
+
+    return FMUModule(name, info, source=fmu, targets=targets, **params)
+
+
+def _check_params(name: str, info: Any, params: dict[str, Any]) -> None:
+    """A parameter that names an input or output gets a message saying what it is."""
+    ports = {s.name: s.kind for s in (*info.inputs, *info.outputs)}
+    for key in params:
+        if key in ports:
+            raise DynabrainError(f"module {name!r}: {key!r} is an {ports[key]} of {info.label}, not a parameter; "
+                                 + ("connect it or set it with world.set" if ports[key] == "input" else
+                                    "outputs are computed by the FMU"))

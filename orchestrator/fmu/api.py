@@ -1,0 +1,341 @@
+"""The thin layer over an FMU binary: one Python method per FMI call, every status through one
+checkpoint (`FmuApi.check`), which raises `FMUCallError` naming the FMU, the call, the status and
+the FMU's own log lines. FMPy finds and loads the library; the calls go through prototypes of our
+own that take plain addresses, so callers pass numpy buffers without per-call conversions.
+
+`Fmi2Api` and `Fmi3Api` have the same methods; nothing above this file branches on the version.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import itertools
+import logging
+import os
+import pathlib
+from collections import deque
+from collections.abc import Callable
+from ctypes import CFUNCTYPE, c_bool, c_char_p, c_double, c_int, c_size_t, c_void_p
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .errors import FMUCallError, FMUDiscardError, FMUError, status_name
+from .info import FmuInfo
+
+_log = logging.getLogger("dynabrain.fmu")
+_P = c_void_p
+_STATUS = ("OK", "WARNING", "DISCARD", "ERROR", "FATAL", "PENDING")
+
+# -- the FMU's log messages, routed to the instance that logged them ------------------------------------
+_SINKS: dict[int, LogSink] = {}
+_KEYS = itertools.count(1)
+
+
+class LogSink:
+    """The last messages an FMU instance logged (they go into error messages) and a logger."""
+
+    def __init__(self, label: str):
+        self.key = next(_KEYS)
+        self.label = label
+        self.messages: deque[str] = deque(maxlen=8)
+        _SINKS[self.key] = self
+
+    def add(self, status: int, category: str, message: str) -> None:
+        text = f"[{_STATUS[status] if 0 <= status < len(_STATUS) else status}] {message}"
+        self.messages.append(text)
+        _log.log(logging.WARNING if status >= 1 else logging.DEBUG, "%s: %s", self.label, text)
+
+    def take(self) -> list[str]:
+        out = list(self.messages)
+        self.messages.clear()
+        return out
+
+    def close(self) -> None:
+        _SINKS.pop(self.key, None)
+
+
+def _route(env: Any, status: int, category: bytes | None, message: bytes | None) -> None:
+    sink = _SINKS.get(env or 0)
+    text = (message or b"").decode("utf-8", "replace")
+    if sink is None:
+        _log.info("FMU log: %s", text)
+    else:
+        sink.add(status, (category or b"").decode("utf-8", "replace"), text)
+
+
+def _route2(env: Any, name: bytes, status: int, category: bytes, message: bytes) -> None:
+    _route(env, status, category, message)
+
+
+def _fmi2_callbacks(key: int) -> Any:
+    from fmpy import calloc, free
+    from fmpy.fmi2 import fmi2CallbackAllocateMemoryTYPE, fmi2CallbackFreeMemoryTYPE, fmi2CallbackFunctions
+    from fmpy.logging import addLoggerProxy
+
+    cb = fmi2CallbackFunctions()
+    cb.logger = _LOGGER2
+    cb.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
+    cb.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
+    cb.componentEnvironment = key
+    addLoggerProxy(ctypes.byref(cb))  # formats the variadic message in C, then calls _route2
+    return cb
+
+
+def _make_loggers() -> tuple[Any, Any]:
+    from fmpy.fmi2 import fmi2CallbackLoggerTYPE
+
+    log3 = CFUNCTYPE(None, c_void_p, c_int, c_char_p, c_char_p)
+    return fmi2CallbackLoggerTYPE(_route2), log3(_route)
+
+
+_LOGGER2, _LOGGER3 = _make_loggers()
+
+
+# -- the API ------------------------------------------------------------------------------------------------
+def _bind(fn: Any, restype: Any, *argtypes: Any) -> Any:
+    return CFUNCTYPE(restype, *argtypes)(ctypes.cast(fn, c_void_p).value)
+
+
+class FmuApi:
+    """One FMU instance's C API. ``instance`` is the component pointer (an int) once instantiated."""
+
+    version: ClassVar[int]
+    CALLS: ClassVar[dict[str, tuple[str, Any, tuple[Any, ...]]]]
+    """method name -> (C function, result type, argument types)."""
+    DTYPES: ClassVar[dict[str, Any]]
+
+    def __init__(self, info: FmuInfo, unzip_dir: str, name: str):
+        self.info, self.name, self.unzip_dir = info, name, unzip_dir
+        self.sink = LogSink(f"{name} ({info.source or pathlib.Path(info.path).name})")
+        self.on_call: Callable[[str], None] | None = None
+        """Told the FMI function about to be called (isolation records it for crash reports)."""
+        self.instance: int | None = None
+        self.dead = False
+        self._fmu = self._load()
+        self.c: dict[str, Any] = {}
+        for key, (cname, restype, argtypes) in self.CALLS.items():
+            self.c[key] = _bind(self._fmu._functions[cname], restype, *argtypes)
+
+    def _load(self) -> Any:
+        from fmpy.fmi2 import FMU2Slave
+        from fmpy.fmi3 import FMU3Slave
+
+        cls = FMU2Slave if self.version == 2 else FMU3Slave
+        cwd = os.getcwd()  # FMPy changes the working folder while loading and not back when it fails
+        try:
+            return cls(guid=self.info.token, modelIdentifier=self.info.model_identifier,
+                       unzipDirectory=self.unzip_dir, instanceName=self.name)
+        except AttributeError as exc:
+            symbol = str(exc).rsplit(":", 1)[-1].strip() or str(exc)
+            raise FMUError(f"{self.info.label}: the binary lacks the FMI function {symbol} ({exc})") from None
+        except Exception as exc:
+            raise FMUError(f"{self.info.label}: cannot load the binary: {exc}") from None
+        finally:
+            os.chdir(cwd)
+
+    # -- the checkpoint ---------------------------------------------------------------------------------
+    def check(self, call: str, status: int) -> int:
+        """Pass OK and Warning (logged) through; raise for anything else. A fatal status marks the
+        instance dead: the FMI standard allows no further call on it."""
+        if status == 0:
+            return 0
+        if status == 1:
+            _log.warning("%s: %s returned %s %s", self.name, call, status_name(self.version, 1),
+                         " | ".join(self.sink.take()))
+            return 1
+        if status >= 4:
+            self.dead = True
+        lines = self.sink.take()
+        detail = f"{status_name(self.version, status)} from {self.info.label}"
+        if lines:
+            detail += "; the FMU said: " + " | ".join(lines)
+        if status == 2:
+            raise FMUDiscardError(self.name, call, None, detail)
+        raise FMUCallError(self.name, call, None, detail)
+
+    def enter(self, call: str) -> None:
+        """Before each call: tell ``on_call``; refuse any call after a fatal status."""
+        if self.on_call is not None:
+            self.on_call(call)
+        if self.dead:
+            raise FMUCallError(self.name, call, None, f"{self.info.label} reported a fatal error earlier; no "
+                               "call is allowed on it any more (with isolate: true it is restarted)")
+
+    def _call(self, key: str, *args: Any) -> int:
+        cname = self.CALLS[key][0]
+        self.enter(cname)
+        return self.check(cname, self.c[key](*args))
+
+    # -- lifecycle --------------------------------------------------------------------------------------
+    def instantiate(self, logging_on: bool = False) -> None:
+        raise NotImplementedError
+
+    def enter_init(self, t0: float) -> None:
+        raise NotImplementedError
+
+    def exit_init(self) -> None:
+        self._call("exit_init", self.instance)
+
+    def terminate(self) -> None:
+        self._call("terminate", self.instance)
+
+    def reset(self) -> None:
+        self._call("reset", self.instance)
+
+    def free(self) -> None:
+        """Free the instance and unload the library (no call after a fatal status but the unload)."""
+        try:
+            if self.instance is not None and not self.dead:
+                self.c["free_instance"](self.instance)
+        finally:
+            self.instance = None
+            self.sink.close()
+            try:
+                self._fmu.freeLibrary()
+            except Exception as exc:  # pragma: no cover - dlclose failing is not worth more than a log line
+                _log.debug("%s: unloading the library failed: %s", self.name, exc)
+
+    # -- values -----------------------------------------------------------------------------------------
+    def set_values(self, kind: str, vrs: np.ndarray, values: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def get_values(self, kind: str, vrs: np.ndarray, out: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def do_step(self, t: float, h: float, no_prior: bool) -> int:
+        raise NotImplementedError
+
+    # -- FMU states -------------------------------------------------------------------------------------
+    def get_state(self, slot: int) -> None:
+        """Save the state into ``*slot`` (a new handle when it holds NULL, else overwritten in place)."""
+        self._call("get_state", self.instance, slot)
+
+    def set_state(self, handle: int) -> None:
+        self._call("set_state", self.instance, handle)
+
+    def free_state(self, slot: int) -> None:
+        self._call("free_state", self.instance, slot)
+
+    def serialize(self, handle: int) -> bytes:
+        size = c_size_t()
+        self._call("state_size", self.instance, handle, ctypes.addressof(size))
+        buf = ctypes.create_string_buffer(size.value)
+        self._call("serialize", self.instance, handle, ctypes.addressof(buf), size.value)
+        return buf.raw
+
+    def deserialize(self, data: bytes, slot: int) -> None:
+        buf = ctypes.create_string_buffer(data, len(data))
+        self._call("deserialize", self.instance, ctypes.addressof(buf), len(data), slot)
+
+
+_COMMON2 = {
+    "instantiate": ("fmi2Instantiate", c_void_p, (c_char_p, c_int, c_char_p, c_char_p, _P, c_int, c_int)),
+    "free_instance": ("fmi2FreeInstance", None, (_P,)),
+    "setup": ("fmi2SetupExperiment", c_int, (_P, c_int, c_double, c_double, c_int, c_double)),
+    "enter_init": ("fmi2EnterInitializationMode", c_int, (_P,)),
+    "exit_init": ("fmi2ExitInitializationMode", c_int, (_P,)),
+    "terminate": ("fmi2Terminate", c_int, (_P,)),
+    "reset": ("fmi2Reset", c_int, (_P,)),
+    "do_step": ("fmi2DoStep", c_int, (_P, c_double, c_double, c_int)),
+    "get_state": ("fmi2GetFMUstate", c_int, (_P, _P)),
+    "set_state": ("fmi2SetFMUstate", c_int, (_P, _P)),
+    "free_state": ("fmi2FreeFMUstate", c_int, (_P, _P)),
+    "state_size": ("fmi2SerializedFMUstateSize", c_int, (_P, _P, _P)),
+    "serialize": ("fmi2SerializeFMUstate", c_int, (_P, _P, _P, c_size_t)),
+    "deserialize": ("fmi2DeSerializeFMUstate", c_int, (_P, _P, c_size_t, _P)),
+}
+
+
+class Fmi2Api(FmuApi):
+    version = 2
+    TYPES: ClassVar[dict[str, str]] = {"real": "Real", "integer": "Integer", "boolean": "Boolean"}
+    CALLS: ClassVar[dict[str, tuple[str, Any, tuple[Any, ...]]]] = {
+        **_COMMON2,
+        **{f"{op}_{k}": (f"fmi2{op.capitalize()}{t}", c_int, (_P, _P, c_size_t, _P))
+           for op in ("set", "get") for k, t in {"real": "Real", "integer": "Integer", "boolean": "Boolean"}.items()},
+    }
+    DTYPES: ClassVar[dict[str, Any]] = {"real": np.float64, "integer": np.int32, "boolean": np.int32}
+
+    def instantiate(self, logging_on: bool = False) -> None:
+        self._callbacks = _fmi2_callbacks(self.sink.key)
+        uri = pathlib.Path(self.unzip_dir, "resources").as_uri()
+        self.enter("fmi2Instantiate")
+        ptr = self.c["instantiate"](self.name.encode(), 1, self.info.token.encode(), uri.encode(),
+                                    ctypes.addressof(self._callbacks), 0, int(logging_on))
+        if not ptr:
+            lines = self.sink.take()
+            raise FMUCallError(self.name, "fmi2Instantiate", None, f"{self.info.label} returned no instance"
+                               + ("; the FMU said: " + " | ".join(lines) if lines else ""))
+        self.instance = ptr
+
+    def enter_init(self, t0: float) -> None:
+        self._call("setup", self.instance, 0, 0.0, t0, 0, 0.0)
+        self._call("enter_init", self.instance)
+
+    def set_values(self, kind: str, vrs: np.ndarray, values: np.ndarray) -> None:
+        if len(vrs):
+            self._call(f"set_{kind}", self.instance, vrs.ctypes.data, len(vrs), values.ctypes.data)
+
+    def get_values(self, kind: str, vrs: np.ndarray, out: np.ndarray) -> None:
+        if len(vrs):
+            self._call(f"get_{kind}", self.instance, vrs.ctypes.data, len(vrs), out.ctypes.data)
+
+    def do_step(self, t: float, h: float, no_prior: bool) -> int:
+        return self._call("do_step", self.instance, t, h, int(no_prior))
+
+
+class Fmi3Api(FmuApi):
+    version = 3
+    CALLS: ClassVar[dict[str, tuple[str, Any, tuple[Any, ...]]]] = {
+        **{k: (c.replace("fmi2", "fmi3").replace("FMUstate", "FMUState"), r, a) for k, (c, r, a) in _COMMON2.items()
+           if k not in ("instantiate", "setup", "enter_init", "do_step", "deserialize")},
+        "instantiate": ("fmi3InstantiateCoSimulation", c_void_p,
+                        (c_char_p, c_char_p, c_char_p, c_bool, c_bool, c_bool, c_bool, _P, c_size_t, _P, _P, _P)),
+        "enter_init": ("fmi3EnterInitializationMode", c_int, (_P, c_bool, c_double, c_double, c_bool, c_double)),
+        "do_step": ("fmi3DoStep", c_int, (_P, c_double, c_double, c_bool, _P, _P, _P, _P)),
+        "deserialize": ("fmi3DeserializeFMUState", c_int, (_P, _P, c_size_t, _P)),
+        **{f"{op}_{k}": (f"fmi3{op.capitalize()}{t}", c_int, (_P, _P, c_size_t, _P, c_size_t))
+           for op in ("set", "get") for k, t in {"real": "Float64", "integer": "Int32", "boolean": "Boolean"}.items()},
+    }
+    DTYPES: ClassVar[dict[str, Any]] = {"real": np.float64, "integer": np.int32, "boolean": np.bool_}
+
+    def __init__(self, info: FmuInfo, unzip_dir: str, name: str):
+        super().__init__(info, unzip_dir, name)
+        self.flags = np.zeros(4, dtype=np.float64)  # eventHandlingNeeded, terminate, earlyReturn; lastSuccessfulTime
+        self._flag_bytes = self.flags.view(np.uint8)
+
+    def instantiate(self, logging_on: bool = False) -> None:
+        resources = os.path.join(self.unzip_dir, "resources") + os.sep
+        self.enter("fmi3InstantiateCoSimulation")
+        ptr = self.c["instantiate"](self.name.encode(), self.info.token.encode(), resources.encode(), False,
+                                    logging_on, False, False, None, 0, self.sink.key,
+                                    ctypes.cast(_LOGGER3, c_void_p).value, None)
+        if not ptr:
+            lines = self.sink.take()
+            raise FMUCallError(self.name, "fmi3InstantiateCoSimulation", None, f"{self.info.label} returned no "
+                               "instance" + ("; the FMU said: " + " | ".join(lines) if lines else ""))
+        self.instance = ptr
+
+    def enter_init(self, t0: float) -> None:
+        self._call("enter_init", self.instance, False, 0.0, t0, False, 0.0)
+
+    def set_values(self, kind: str, vrs: np.ndarray, values: np.ndarray) -> None:
+        if len(vrs):
+            self._call(f"set_{kind}", self.instance, vrs.ctypes.data, len(vrs), values.ctypes.data, values.size)
+
+    def get_values(self, kind: str, vrs: np.ndarray, out: np.ndarray) -> None:
+        if len(vrs):
+            self._call(f"get_{kind}", self.instance, vrs.ctypes.data, len(vrs), out.ctypes.data, out.size)
+
+    def do_step(self, t: float, h: float, no_prior: bool) -> int:
+        base = self._flag_bytes.ctypes.data
+        status = self._call("do_step", self.instance, t, h, no_prior, base, base + 1, base + 2, base + 24)
+        if self._flag_bytes[1]:
+            raise FMUCallError(self.name, "fmi3DoStep", None, f"{self.info.label} asked to end the simulation "
+                               f"(terminateSimulation) at t={t + h:g} s")
+        return status
+
+
+def make_api(info: FmuInfo, unzip_dir: str, name: str) -> FmuApi:
+    return (Fmi2Api if info.version == 2 else Fmi3Api)(info, unzip_dir, name)

@@ -1,0 +1,61 @@
+/* The adapter's step helper: one call from Python does what a co-simulation step needs of an FMU,
+ * SetReal (inputs), DoStep, GetReal (outputs) and GetFMUState (the state history keeps), reading
+ * and writing the master's buffers in place. The step starts at t_ns nanoseconds (passed as a
+ * pointer-sized integer: ctypes converts those fastest) and lasts p->h seconds.
+ * It returns 0, or (call << 4 | status) for the first
+ * call whose status is worse than Warning (or the first Warning when all passed):
+ * call 1 set, 2 step, 3 get, 4 state; status 6 is FMI 3's terminateSimulation, 7 an early return. */
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
+typedef struct {
+    void *instance;
+    void *set_real, *do_step, *get_real, *get_state;
+    const unsigned *in_vr;
+    size_t n_in_vr;
+    const double *in;
+    size_t n_in;
+    const unsigned *out_vr;
+    size_t n_out_vr;
+    double *out;
+    size_t n_out;
+    int fmi3;
+    int no_prior;
+    double h;
+} Plan;
+
+typedef int (*set2_t)(void *, const unsigned *, size_t, const double *);
+typedef int (*get2_t)(void *, const unsigned *, size_t, double *);
+typedef int (*step2_t)(void *, double, double, int);
+typedef int (*set3_t)(void *, const unsigned *, size_t, const double *, size_t);
+typedef int (*get3_t)(void *, const unsigned *, size_t, double *, size_t);
+typedef int (*step3_t)(void *, double, double, bool, bool *, bool *, bool *, double *);
+typedef int (*state_t)(void *, void **);
+
+#define CHECK(call, expr)                                      \
+    do {                                                       \
+        int s_ = (expr);                                       \
+        if (s_ > 1) return ((call) << 4) | s_;                 \
+        if (s_ == 1 && !warn) warn = ((call) << 4) | 1;        \
+    } while (0)
+
+__attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, void **state) {
+    int warn = 0;
+    double t = (double)(uintptr_t)t_ns / 1e9, h = p->h;
+    if (p->fmi3) {
+        bool event = false, terminate = false, early = false;
+        double last = 0.0;
+        if (p->n_in_vr) CHECK(1, ((set3_t)p->set_real)(p->instance, p->in_vr, p->n_in_vr, p->in, p->n_in));
+        CHECK(2, ((step3_t)p->do_step)(p->instance, t, h, p->no_prior != 0, &event, &terminate, &early, &last));
+        if (terminate) return (2 << 4) | 6;
+        if (early) return (2 << 4) | 7;
+        if (p->n_out_vr) CHECK(3, ((get3_t)p->get_real)(p->instance, p->out_vr, p->n_out_vr, p->out, p->n_out));
+    } else {
+        if (p->n_in_vr) CHECK(1, ((set2_t)p->set_real)(p->instance, p->in_vr, p->n_in_vr, p->in));
+        CHECK(2, ((step2_t)p->do_step)(p->instance, t, h, p->no_prior));
+        if (p->n_out_vr) CHECK(3, ((get2_t)p->get_real)(p->instance, p->out_vr, p->n_out_vr, p->out));
+    }
+    if (state) CHECK(4, ((state_t)p->get_state)(p->instance, state));
+    return warn;
+}

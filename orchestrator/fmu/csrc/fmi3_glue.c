@@ -1,0 +1,375 @@
+/* FMI 3.0 co-simulation API of a dynabrain C FMU, on the version-neutral core (fmu_glue.h).
+ * Model exchange, scheduled execution, clocks and the types a model cannot declare are refused with
+ * fmi3Error and a log message, so every function of the standard is present in the binary. */
+#include <string.h>
+
+#include "fmi3Functions.h"
+#include "fmu_glue.h"
+
+#define INST ((Instance *)instance)
+#define UNSUPPORTED(call) return (fmi3Status)core_unsupported(INST, call)
+
+static void emit3(Instance *inst, int status, const char *category, const char *message) {
+    fmi3LogMessageCallback log = (fmi3LogMessageCallback)inst->logger;
+    if (log) log(inst->env, (fmi3Status)status, category, message);
+}
+
+const char *fmi3GetVersion(void) { return fmi3Version; }
+
+fmi3Status fmi3SetDebugLogging(fmi3Instance instance, fmi3Boolean loggingOn, size_t nCategories,
+                               const fmi3String categories[]) {
+    (void)nCategories, (void)categories;
+    if (!instance) return fmi3Error;
+    INST->logging = loggingOn;
+    return fmi3OK;
+}
+
+fmi3Instance fmi3InstantiateModelExchange(fmi3String instanceName, fmi3String instantiationToken,
+                                          fmi3String resourcePath, fmi3Boolean visible, fmi3Boolean loggingOn,
+                                          fmi3InstanceEnvironment instanceEnvironment,
+                                          fmi3LogMessageCallback logMessage) {
+    (void)instanceName, (void)instantiationToken, (void)resourcePath, (void)visible, (void)loggingOn;
+    if (logMessage) logMessage(instanceEnvironment, fmi3Error, "logStatusError", "this FMU supports co-simulation only");
+    return NULL;
+}
+
+fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String instantiationToken,
+                                         fmi3String resourcePath, fmi3Boolean visible, fmi3Boolean loggingOn,
+                                         fmi3Boolean eventModeUsed, fmi3Boolean earlyReturnAllowed,
+                                         const fmi3ValueReference requiredIntermediateVariables[],
+                                         size_t nRequiredIntermediateVariables,
+                                         fmi3InstanceEnvironment instanceEnvironment,
+                                         fmi3LogMessageCallback logMessage,
+                                         fmi3IntermediateUpdateCallback intermediateUpdate) {
+    (void)resourcePath, (void)visible, (void)eventModeUsed, (void)earlyReturnAllowed;
+    (void)requiredIntermediateVariables, (void)nRequiredIntermediateVariables, (void)intermediateUpdate;
+    return core_new(instanceName, instantiationToken, emit3, instanceEnvironment, (void *)logMessage, loggingOn);
+}
+
+fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3String instantiationToken,
+                                               fmi3String resourcePath, fmi3Boolean visible, fmi3Boolean loggingOn,
+                                               fmi3InstanceEnvironment instanceEnvironment,
+                                               fmi3LogMessageCallback logMessage,
+                                               fmi3ClockUpdateCallback clockUpdate,
+                                               fmi3LockPreemptionCallback lockPreemption,
+                                               fmi3UnlockPreemptionCallback unlockPreemption) {
+    (void)instanceName, (void)instantiationToken, (void)resourcePath, (void)visible, (void)loggingOn;
+    (void)clockUpdate, (void)lockPreemption, (void)unlockPreemption;
+    if (logMessage) logMessage(instanceEnvironment, fmi3Error, "logStatusError", "this FMU supports co-simulation only");
+    return NULL;
+}
+
+void fmi3FreeInstance(fmi3Instance instance) { core_free(INST); }
+
+fmi3Status fmi3EnterInitializationMode(fmi3Instance instance, fmi3Boolean toleranceDefined, fmi3Float64 tolerance,
+                                       fmi3Float64 startTime, fmi3Boolean stopTimeDefined, fmi3Float64 stopTime) {
+    (void)toleranceDefined, (void)tolerance, (void)stopTimeDefined, (void)stopTime;
+    return (fmi3Status)core_enter_init(INST, startTime);
+}
+
+fmi3Status fmi3ExitInitializationMode(fmi3Instance instance) { return (fmi3Status)core_exit_init(INST); }
+fmi3Status fmi3EnterEventMode(fmi3Instance instance) { UNSUPPORTED("fmi3EnterEventMode"); }
+fmi3Status fmi3Terminate(fmi3Instance instance) { return (fmi3Status)core_terminate(INST); }
+
+fmi3Status fmi3Reset(fmi3Instance instance) {
+    if (!instance) return fmi3Error;
+    if (INST->mode == MODE_FATAL) return fmi3Fatal;
+    core_reset(INST);
+    return fmi3OK;
+}
+
+fmi3Status fmi3GetFloat64(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                          fmi3Float64 values[], size_t nValues) {
+    return (fmi3Status)core_get(INST, T_REAL, valueReferences, nValueReferences, values, nValues, true,
+                                "fmi3GetFloat64");
+}
+
+fmi3Status fmi3GetInt32(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                        fmi3Int32 values[], size_t nValues) {
+    return (fmi3Status)core_get(INST, T_INT, valueReferences, nValueReferences, values, nValues, true,
+                                "fmi3GetInt32");
+}
+
+fmi3Status fmi3GetBoolean(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                          fmi3Boolean values[], size_t nValues) {
+    return (fmi3Status)core_get(INST, T_BOOL, valueReferences, nValueReferences, values, nValues, true,
+                                "fmi3GetBoolean");
+}
+
+fmi3Status fmi3SetFloat64(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                          const fmi3Float64 values[], size_t nValues) {
+    return (fmi3Status)core_set(INST, T_REAL, valueReferences, nValueReferences, values, nValues, true,
+                                "fmi3SetFloat64");
+}
+
+fmi3Status fmi3SetInt32(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                        const fmi3Int32 values[], size_t nValues) {
+    return (fmi3Status)core_set(INST, T_INT, valueReferences, nValueReferences, values, nValues, true,
+                                "fmi3SetInt32");
+}
+
+fmi3Status fmi3SetBoolean(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                          const fmi3Boolean values[], size_t nValues) {
+    return (fmi3Status)core_set(INST, T_BOOL, valueReferences, nValueReferences, values, nValues, true,
+                                "fmi3SetBoolean");
+}
+
+/* Types no dynabrain model declares: an empty call is fine, any variable is unknown. */
+#define NO_TYPE(name, ctype, qual)                                                                        \
+    fmi3Status name(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, \
+                    qual ctype values[], size_t nValues) {                                                 \
+        (void)valueReferences, (void)values, (void)nValues;                                               \
+        if (!nValueReferences) return fmi3OK;                                                              \
+        UNSUPPORTED(#name " (this FMU has no variable of that type)");                                     \
+    }
+
+NO_TYPE(fmi3GetFloat32, fmi3Float32, )
+NO_TYPE(fmi3GetInt8, fmi3Int8, )
+NO_TYPE(fmi3GetUInt8, fmi3UInt8, )
+NO_TYPE(fmi3GetInt16, fmi3Int16, )
+NO_TYPE(fmi3GetUInt16, fmi3UInt16, )
+NO_TYPE(fmi3GetUInt32, fmi3UInt32, )
+NO_TYPE(fmi3GetInt64, fmi3Int64, )
+NO_TYPE(fmi3GetUInt64, fmi3UInt64, )
+NO_TYPE(fmi3GetString, fmi3String, )
+NO_TYPE(fmi3SetFloat32, fmi3Float32, const)
+NO_TYPE(fmi3SetInt8, fmi3Int8, const)
+NO_TYPE(fmi3SetUInt8, fmi3UInt8, const)
+NO_TYPE(fmi3SetInt16, fmi3Int16, const)
+NO_TYPE(fmi3SetUInt16, fmi3UInt16, const)
+NO_TYPE(fmi3SetUInt32, fmi3UInt32, const)
+NO_TYPE(fmi3SetInt64, fmi3Int64, const)
+NO_TYPE(fmi3SetUInt64, fmi3UInt64, const)
+NO_TYPE(fmi3SetString, fmi3String, const)
+
+fmi3Status fmi3GetBinary(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                         size_t valueSizes[], fmi3Binary values[], size_t nValues) {
+    (void)valueReferences, (void)valueSizes, (void)values, (void)nValues;
+    if (!nValueReferences) return fmi3OK;
+    UNSUPPORTED("fmi3GetBinary");
+}
+
+fmi3Status fmi3SetBinary(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                         const size_t valueSizes[], const fmi3Binary values[], size_t nValues) {
+    (void)valueReferences, (void)valueSizes, (void)values, (void)nValues;
+    if (!nValueReferences) return fmi3OK;
+    UNSUPPORTED("fmi3SetBinary");
+}
+
+fmi3Status fmi3GetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                        fmi3Clock values[]) {
+    (void)valueReferences, (void)nValueReferences, (void)values;
+    UNSUPPORTED("fmi3GetClock");
+}
+
+fmi3Status fmi3SetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
+                        const fmi3Clock values[]) {
+    (void)valueReferences, (void)nValueReferences, (void)values;
+    UNSUPPORTED("fmi3SetClock");
+}
+
+fmi3Status fmi3GetNumberOfVariableDependencies(fmi3Instance instance, fmi3ValueReference valueReference,
+                                               size_t *nDependencies) {
+    (void)valueReference, (void)nDependencies;
+    UNSUPPORTED("fmi3GetNumberOfVariableDependencies");
+}
+
+fmi3Status fmi3GetVariableDependencies(fmi3Instance instance, fmi3ValueReference dependent,
+                                       size_t elementIndicesOfDependent[], fmi3ValueReference independents[],
+                                       size_t elementIndicesOfIndependents[], fmi3DependencyKind dependencyKinds[],
+                                       size_t nDependencies) {
+    (void)dependent, (void)elementIndicesOfDependent, (void)independents, (void)elementIndicesOfIndependents;
+    (void)dependencyKinds, (void)nDependencies;
+    UNSUPPORTED("fmi3GetVariableDependencies");
+}
+
+fmi3Status fmi3GetFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
+    return (fmi3Status)core_get_state(INST, FMUState);
+}
+
+fmi3Status fmi3SetFMUState(fmi3Instance instance, fmi3FMUState FMUState) {
+    return (fmi3Status)core_set_state(INST, FMUState);
+}
+
+fmi3Status fmi3FreeFMUState(fmi3Instance instance, fmi3FMUState *FMUState) {
+    return (fmi3Status)core_free_state(INST, FMUState);
+}
+
+fmi3Status fmi3SerializedFMUStateSize(fmi3Instance instance, fmi3FMUState FMUState, size_t *size) {
+    (void)instance, (void)FMUState;
+    if (!size) return fmi3Error;
+    *size = core_serialized_size();
+    return fmi3OK;
+}
+
+fmi3Status fmi3SerializeFMUState(fmi3Instance instance, fmi3FMUState FMUState, fmi3Byte serializedState[],
+                                 size_t size) {
+    return (fmi3Status)core_serialize(INST, FMUState, serializedState, size);
+}
+
+fmi3Status fmi3DeserializeFMUState(fmi3Instance instance, const fmi3Byte serializedState[], size_t size,
+                                   fmi3FMUState *FMUState) {
+    return (fmi3Status)core_deserialize(INST, serializedState, size, FMUState);
+}
+
+fmi3Status fmi3GetDirectionalDerivative(fmi3Instance instance, const fmi3ValueReference unknowns[], size_t nUnknowns,
+                                        const fmi3ValueReference knowns[], size_t nKnowns, const fmi3Float64 seed[],
+                                        size_t nSeed, fmi3Float64 sensitivity[], size_t nSensitivity) {
+    (void)unknowns, (void)nUnknowns, (void)knowns, (void)nKnowns, (void)seed, (void)nSeed;
+    (void)sensitivity, (void)nSensitivity;
+    UNSUPPORTED("fmi3GetDirectionalDerivative");
+}
+
+fmi3Status fmi3GetAdjointDerivative(fmi3Instance instance, const fmi3ValueReference unknowns[], size_t nUnknowns,
+                                    const fmi3ValueReference knowns[], size_t nKnowns, const fmi3Float64 seed[],
+                                    size_t nSeed, fmi3Float64 sensitivity[], size_t nSensitivity) {
+    (void)unknowns, (void)nUnknowns, (void)knowns, (void)nKnowns, (void)seed, (void)nSeed;
+    (void)sensitivity, (void)nSensitivity;
+    UNSUPPORTED("fmi3GetAdjointDerivative");
+}
+
+fmi3Status fmi3EnterConfigurationMode(fmi3Instance instance) { UNSUPPORTED("fmi3EnterConfigurationMode"); }
+fmi3Status fmi3ExitConfigurationMode(fmi3Instance instance) { UNSUPPORTED("fmi3ExitConfigurationMode"); }
+
+fmi3Status fmi3GetIntervalDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                                  size_t nValueReferences, fmi3Float64 intervals[],
+                                  fmi3IntervalQualifier qualifiers[]) {
+    (void)valueReferences, (void)nValueReferences, (void)intervals, (void)qualifiers;
+    UNSUPPORTED("fmi3GetIntervalDecimal");
+}
+
+fmi3Status fmi3GetIntervalFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                                   size_t nValueReferences, fmi3UInt64 counters[], fmi3UInt64 resolutions[],
+                                   fmi3IntervalQualifier qualifiers[]) {
+    (void)valueReferences, (void)nValueReferences, (void)counters, (void)resolutions, (void)qualifiers;
+    UNSUPPORTED("fmi3GetIntervalFraction");
+}
+
+fmi3Status fmi3GetShiftDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                               size_t nValueReferences, fmi3Float64 shifts[]) {
+    (void)valueReferences, (void)nValueReferences, (void)shifts;
+    UNSUPPORTED("fmi3GetShiftDecimal");
+}
+
+fmi3Status fmi3GetShiftFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                                size_t nValueReferences, fmi3UInt64 counters[], fmi3UInt64 resolutions[]) {
+    (void)valueReferences, (void)nValueReferences, (void)counters, (void)resolutions;
+    UNSUPPORTED("fmi3GetShiftFraction");
+}
+
+fmi3Status fmi3SetIntervalDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                                  size_t nValueReferences, const fmi3Float64 intervals[]) {
+    (void)valueReferences, (void)nValueReferences, (void)intervals;
+    UNSUPPORTED("fmi3SetIntervalDecimal");
+}
+
+fmi3Status fmi3SetIntervalFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                                   size_t nValueReferences, const fmi3UInt64 counters[],
+                                   const fmi3UInt64 resolutions[]) {
+    (void)valueReferences, (void)nValueReferences, (void)counters, (void)resolutions;
+    UNSUPPORTED("fmi3SetIntervalFraction");
+}
+
+fmi3Status fmi3SetShiftDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                               size_t nValueReferences, const fmi3Float64 shifts[]) {
+    (void)valueReferences, (void)nValueReferences, (void)shifts;
+    UNSUPPORTED("fmi3SetShiftDecimal");
+}
+
+fmi3Status fmi3SetShiftFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                                size_t nValueReferences, const fmi3UInt64 counters[], const fmi3UInt64 resolutions[]) {
+    (void)valueReferences, (void)nValueReferences, (void)counters, (void)resolutions;
+    UNSUPPORTED("fmi3SetShiftFraction");
+}
+
+fmi3Status fmi3EvaluateDiscreteStates(fmi3Instance instance) { UNSUPPORTED("fmi3EvaluateDiscreteStates"); }
+
+fmi3Status fmi3UpdateDiscreteStates(fmi3Instance instance, fmi3Boolean *discreteStatesNeedUpdate,
+                                    fmi3Boolean *terminateSimulation, fmi3Boolean *nominalsOfContinuousStatesChanged,
+                                    fmi3Boolean *valuesOfContinuousStatesChanged, fmi3Boolean *nextEventTimeDefined,
+                                    fmi3Float64 *nextEventTime) {
+    (void)discreteStatesNeedUpdate, (void)terminateSimulation, (void)nominalsOfContinuousStatesChanged;
+    (void)valuesOfContinuousStatesChanged, (void)nextEventTimeDefined, (void)nextEventTime;
+    UNSUPPORTED("fmi3UpdateDiscreteStates");
+}
+
+fmi3Status fmi3EnterContinuousTimeMode(fmi3Instance instance) { UNSUPPORTED("fmi3EnterContinuousTimeMode"); }
+
+fmi3Status fmi3CompletedIntegratorStep(fmi3Instance instance, fmi3Boolean noSetFMUStatePriorToCurrentPoint,
+                                       fmi3Boolean *enterEventMode, fmi3Boolean *terminateSimulation) {
+    (void)noSetFMUStatePriorToCurrentPoint, (void)enterEventMode, (void)terminateSimulation;
+    UNSUPPORTED("fmi3CompletedIntegratorStep");
+}
+
+fmi3Status fmi3SetTime(fmi3Instance instance, fmi3Float64 time) {
+    (void)time;
+    UNSUPPORTED("fmi3SetTime");
+}
+
+fmi3Status fmi3SetContinuousStates(fmi3Instance instance, const fmi3Float64 continuousStates[],
+                                   size_t nContinuousStates) {
+    (void)continuousStates, (void)nContinuousStates;
+    UNSUPPORTED("fmi3SetContinuousStates");
+}
+
+fmi3Status fmi3GetContinuousStateDerivatives(fmi3Instance instance, fmi3Float64 derivatives[],
+                                             size_t nContinuousStates) {
+    (void)derivatives, (void)nContinuousStates;
+    UNSUPPORTED("fmi3GetContinuousStateDerivatives");
+}
+
+fmi3Status fmi3GetEventIndicators(fmi3Instance instance, fmi3Float64 eventIndicators[], size_t nEventIndicators) {
+    (void)eventIndicators, (void)nEventIndicators;
+    UNSUPPORTED("fmi3GetEventIndicators");
+}
+
+fmi3Status fmi3GetContinuousStates(fmi3Instance instance, fmi3Float64 continuousStates[], size_t nContinuousStates) {
+    (void)continuousStates, (void)nContinuousStates;
+    UNSUPPORTED("fmi3GetContinuousStates");
+}
+
+fmi3Status fmi3GetNominalsOfContinuousStates(fmi3Instance instance, fmi3Float64 nominals[],
+                                             size_t nContinuousStates) {
+    (void)nominals, (void)nContinuousStates;
+    UNSUPPORTED("fmi3GetNominalsOfContinuousStates");
+}
+
+fmi3Status fmi3GetNumberOfEventIndicators(fmi3Instance instance, size_t *nEventIndicators) {
+    if (!instance || !nEventIndicators) return fmi3Error;
+    *nEventIndicators = 0;
+    return fmi3OK;
+}
+
+fmi3Status fmi3GetNumberOfContinuousStates(fmi3Instance instance, size_t *nContinuousStates) {
+    if (!instance || !nContinuousStates) return fmi3Error;
+    *nContinuousStates = 0;
+    return fmi3OK;
+}
+
+fmi3Status fmi3EnterStepMode(fmi3Instance instance) { UNSUPPORTED("fmi3EnterStepMode"); }
+
+fmi3Status fmi3GetOutputDerivatives(fmi3Instance instance, const fmi3ValueReference valueReferences[],
+                                    size_t nValueReferences, const fmi3Int32 orders[], fmi3Float64 values[],
+                                    size_t nValues) {
+    (void)valueReferences, (void)nValueReferences, (void)orders, (void)values, (void)nValues;
+    UNSUPPORTED("fmi3GetOutputDerivatives");
+}
+
+fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoint,
+                      fmi3Float64 communicationStepSize, fmi3Boolean noSetFMUStatePriorToCurrentPoint,
+                      fmi3Boolean *eventHandlingNeeded, fmi3Boolean *terminateSimulation, fmi3Boolean *earlyReturn,
+                      fmi3Float64 *lastSuccessfulTime) {
+    (void)noSetFMUStatePriorToCurrentPoint;
+    int s = core_do_step(INST, currentCommunicationPoint, communicationStepSize);
+    if (eventHandlingNeeded) *eventHandlingNeeded = false;
+    if (terminateSimulation) *terminateSimulation = false;
+    if (earlyReturn) *earlyReturn = false;
+    if (lastSuccessfulTime && instance) *lastSuccessfulTime = INST->d.time;
+    return (fmi3Status)s;
+}
+
+fmi3Status fmi3ActivateModelPartition(fmi3Instance instance, fmi3ValueReference clockReference,
+                                      fmi3Float64 activationTime) {
+    (void)clockReference, (void)activationTime;
+    UNSUPPORTED("fmi3ActivateModelPartition");
+}

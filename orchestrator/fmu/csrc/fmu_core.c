@@ -1,0 +1,345 @@
+/* Version-neutral core of the dynabrain FMU glue (see fmu_glue.h). */
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "fmu_glue.h"
+#include "model_tables.inc" /* generated: MODEL_TOKEN, NVARS, VARS[], model_starts() */
+
+#define STATE_MAGIC 0x53464244u  /* "DBFS" */
+#define SERIAL_VERSION 1u
+
+/* Serialized form: this header, then the ModelData bytes. */
+typedef struct {
+    uint32_t magic;
+    uint32_t version;
+    uint64_t data_size;
+    uint64_t token_hash;
+    int32_t mode;
+    int32_t reserved;
+} SerialHeader;
+
+static uint64_t token_hash(void) {
+    uint64_t h = 1469598103934665603ull; /* FNV-1a */
+    for (const char *p = MODEL_TOKEN; *p; ++p) {
+        h ^= (unsigned char)*p;
+        h *= 1099511628211ull;
+    }
+    return h;
+}
+
+void fmu_log(const ModelData *m, int status, const char *format, ...) {
+    Instance *inst = (Instance *)m;
+    char message[1024];
+    va_list args;
+    va_start(args, format);
+    vsnprintf(message, sizeof message, format, args);
+    va_end(args);
+    if (inst->emit) inst->emit(inst, status, status >= MODEL_WARNING ? "logStatusWarning" : "logEvents", message);
+}
+
+void core_log(Instance *inst, int status, const char *category, const char *format, ...) {
+    char message[1024];
+    va_list args;
+    if (!inst->emit || (status == MODEL_OK && !inst->logging)) return;
+    va_start(args, format);
+    vsnprintf(message, sizeof message, format, args);
+    va_end(args);
+    inst->emit(inst, status, category, message);
+}
+
+Instance *core_new(const char *name, const char *token, EmitFn emit, void *env, void *logger, bool logging) {
+    Instance probe;
+    memset(&probe, 0, sizeof probe);
+    probe.emit = emit;
+    probe.env = env;
+    probe.logger = logger;
+    probe.name = (char *)(name ? name : "?");
+    if (!token || strcmp(token, MODEL_TOKEN) != 0) {
+        core_log(&probe, MODEL_ERROR, "logStatusError", "instantiation token %s does not match this binary's %s",
+                 token ? token : "(null)", MODEL_TOKEN);
+        return NULL;
+    }
+    Instance *inst = calloc(1, sizeof *inst);
+    char *copy = malloc(strlen(probe.name) + 1);
+    if (!inst || !copy) {
+        free(inst);
+        free(copy);
+        core_log(&probe, MODEL_ERROR, "logStatusError", "out of memory");
+        return NULL;
+    }
+    strcpy(copy, probe.name);
+    inst->name = copy;
+    inst->emit = emit;
+    inst->env = env;
+    inst->logger = logger;
+    inst->logging = logging;
+    core_reset(inst);
+    return inst;
+}
+
+void core_free(Instance *inst) {
+    if (!inst) return;
+    free(inst->name);
+    free(inst);
+}
+
+void core_reset(Instance *inst) {
+    memset(&inst->d, 0, sizeof inst->d);
+    model_starts(&inst->d);
+    inst->mode = MODE_INSTANTIATED;
+}
+
+int core_usable(Instance *inst, const char *call) {
+    if (!inst) return MODEL_ERROR;
+    if (inst->mode == MODE_FATAL) return MODEL_FATAL;
+    if (inst->mode == MODE_ERROR) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: the instance failed earlier; reset it or restore a state",
+                 call);
+        return MODEL_ERROR;
+    }
+    return MODEL_OK;
+}
+
+static int fail(Instance *inst, int status) {
+    if (status == MODEL_ERROR) inst->mode = MODE_ERROR;
+    if (status >= MODEL_FATAL) inst->mode = MODE_FATAL;
+    return status;
+}
+
+int core_enter_init(Instance *inst, double start_time) {
+    int s = core_usable(inst, "EnterInitializationMode");
+    if (s) return s;
+    if (inst->mode != MODE_INSTANTIATED) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "EnterInitializationMode: not in the instantiated state");
+        return MODEL_ERROR;
+    }
+    inst->d.time = start_time;
+    inst->mode = MODE_INIT;
+    return MODEL_OK;
+}
+
+int core_exit_init(Instance *inst) {
+    int s = core_usable(inst, "ExitInitializationMode");
+    if (s) return s;
+    if (inst->mode != MODE_INIT) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "ExitInitializationMode: not in initialization mode");
+        return MODEL_ERROR;
+    }
+    s = model_init(&inst->d);
+    if (s > MODEL_DISCARD) return fail(inst, s);
+    if (s == MODEL_DISCARD) return MODEL_ERROR;
+    inst->mode = MODE_STEP;
+    return s;
+}
+
+int core_do_step(Instance *inst, double t, double h) {
+    int s = core_usable(inst, "DoStep");
+    if (s) return s;
+    if (inst->mode != MODE_STEP) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "DoStep: the instance is not initialized");
+        return MODEL_ERROR;
+    }
+    if (!(h > 0.0)) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "DoStep: step size %g is not positive", h);
+        return MODEL_ERROR;
+    }
+    inst->d.time = t;
+    s = model_step(&inst->d, h);
+    if (s <= MODEL_WARNING) inst->d.time = t + h;
+    else if (s > MODEL_DISCARD) return fail(inst, s);
+    return s;
+}
+
+int core_terminate(Instance *inst) {
+    int s = core_usable(inst, "Terminate");
+    if (s) return s;
+    inst->mode = MODE_TERMINATED;
+    return MODEL_OK;
+}
+
+static int settable(const Instance *inst, const VarInfo *v) {
+    bool before_step = inst->mode == MODE_INSTANTIATED || inst->mode == MODE_INIT;
+    switch (v->causality) {
+    case C_INPUT: return inst->mode != MODE_TERMINATED;
+    case C_PARAMETER: return v->variability == V_TUNABLE ? inst->mode != MODE_TERMINATED : before_step;
+    case C_LOCAL: return v->exact && before_step;
+    default: return 0;
+    }
+}
+
+static const char *type_name(VarType t) {
+    return t == T_REAL ? "a float" : t == T_INT ? "an integer" : "a boolean";
+}
+
+static const VarInfo *lookup(Instance *inst, VarType type, unsigned vr, const char *call) {
+    if (vr >= NVARS) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: unknown value reference %u", call, vr);
+        return NULL;
+    }
+    const VarInfo *v = &VARS[vr];
+    if (v->type != type) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: variable %s (value reference %u) is not %s", call,
+                 v->name, vr, type_name(type));
+        return NULL;
+    }
+    return v;
+}
+
+/* Check every reference and the value count before touching anything: a refused call changes nothing. */
+static int plan_access(Instance *inst, VarType type, const unsigned *vr, size_t nvr, size_t nvalues, bool set,
+                       const char *call) {
+    size_t total = 0;
+    for (size_t i = 0; i < nvr; ++i) {
+        const VarInfo *v = lookup(inst, type, vr[i], call);
+        if (!v) return MODEL_ERROR;
+        if (set && !settable(inst, v)) {
+            core_log(inst, MODEL_ERROR, "logStatusError", "%s: variable %s cannot be set now", call, v->name);
+            return MODEL_ERROR;
+        }
+        total += v->count;
+    }
+    if (total != nvalues) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: %zu values given for %zu", call, nvalues, total);
+        return MODEL_ERROR;
+    }
+    return MODEL_OK;
+}
+
+int core_set(Instance *inst, VarType type, const unsigned *vr, size_t nvr, const void *values, size_t nvalues,
+             bool bool8, const char *call) {
+    int s = core_usable(inst, call);
+    if (s) return s;
+    if (nvr && (!vr || !values)) return MODEL_ERROR;
+    s = plan_access(inst, type, vr, nvr, nvalues, true, call);
+    if (s) return s;
+    size_t k = 0;
+    char *base = (char *)&inst->d;
+    for (size_t i = 0; i < nvr; ++i) {
+        const VarInfo *v = &VARS[vr[i]];
+        for (size_t j = 0; j < v->count; ++j, ++k) {
+            if (type == T_REAL) ((double *)(base + v->offset))[j] = ((const double *)values)[k];
+            else if (type == T_INT) ((int32_t *)(base + v->offset))[j] = ((const int32_t *)values)[k];
+            else ((int32_t *)(base + v->offset))[j] = bool8 ? ((const bool *)values)[k] : ((const int *)values)[k] != 0;
+        }
+    }
+    return MODEL_OK;
+}
+
+int core_get(Instance *inst, VarType type, const unsigned *vr, size_t nvr, void *values, size_t nvalues, bool bool8,
+             const char *call) {
+    int s = core_usable(inst, call);
+    if (s) return s;
+    if (nvr && (!vr || !values)) return MODEL_ERROR;
+    s = plan_access(inst, type, vr, nvr, nvalues, false, call);
+    if (s) return s;
+    size_t k = 0;
+    const char *base = (const char *)&inst->d;
+    for (size_t i = 0; i < nvr; ++i) {
+        const VarInfo *v = &VARS[vr[i]];
+        for (size_t j = 0; j < v->count; ++j, ++k) {
+            if (type == T_REAL) ((double *)values)[k] = ((const double *)(base + v->offset))[j];
+            else if (type == T_INT) ((int32_t *)values)[k] = ((const int32_t *)(base + v->offset))[j];
+            else if (bool8) ((bool *)values)[k] = ((const int32_t *)(base + v->offset))[j] != 0;
+            else ((int *)values)[k] = ((const int32_t *)(base + v->offset))[j] != 0;
+        }
+    }
+    return MODEL_OK;
+}
+
+static SavedState *checked(Instance *inst, void *state, const char *call) {
+    SavedState *s = state;
+    if (!s || s->magic != STATE_MAGIC) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: not an FMU state of this FMU", call);
+        return NULL;
+    }
+    return s;
+}
+
+/* A non-NULL *state is a state returned before: it is overwritten in place (no allocation). */
+int core_get_state(Instance *inst, void **state) {
+    int s = core_usable(inst, "GetFMUState");
+    if (s) return s;
+    if (!state) return MODEL_ERROR;
+    SavedState *saved = *state;
+    if (saved && !checked(inst, saved, "GetFMUState")) return MODEL_ERROR;
+    if (!saved) {
+        saved = malloc(sizeof *saved);
+        if (!saved) {
+            core_log(inst, MODEL_ERROR, "logStatusError", "GetFMUState: out of memory");
+            return MODEL_ERROR;
+        }
+        *state = saved;
+    }
+    saved->magic = STATE_MAGIC;
+    saved->mode = inst->mode;
+    memcpy(&saved->d, &inst->d, sizeof inst->d);
+    return MODEL_OK;
+}
+
+int core_set_state(Instance *inst, void *state) {
+    if (!inst) return MODEL_ERROR;
+    if (inst->mode == MODE_FATAL) return MODEL_FATAL;
+    SavedState *saved = checked(inst, state, "SetFMUState");
+    if (!saved) return MODEL_ERROR;
+    memcpy(&inst->d, &saved->d, sizeof inst->d);
+    inst->mode = saved->mode;
+    return MODEL_OK;
+}
+
+int core_free_state(Instance *inst, void **state) {
+    if (!state || !*state) return MODEL_OK;
+    if (!checked(inst, *state, "FreeFMUState")) return MODEL_ERROR;
+    ((SavedState *)*state)->magic = 0;
+    free(*state);
+    *state = NULL;
+    return MODEL_OK;
+}
+
+size_t core_serialized_size(void) { return sizeof(SerialHeader) + sizeof(ModelData); }
+
+int core_serialize(Instance *inst, void *state, unsigned char *out, size_t size) {
+    SavedState *saved = checked(inst, state, "SerializeFMUState");
+    if (!saved) return MODEL_ERROR;
+    if (!out || size < core_serialized_size()) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "SerializeFMUState: buffer of %zu bytes, %zu needed", size,
+                 core_serialized_size());
+        return MODEL_ERROR;
+    }
+    SerialHeader h = {STATE_MAGIC, SERIAL_VERSION, sizeof(ModelData), token_hash(), (int32_t)saved->mode, 0};
+    memcpy(out, &h, sizeof h);
+    memcpy(out + sizeof h, &saved->d, sizeof saved->d);
+    return MODEL_OK;
+}
+
+int core_deserialize(Instance *inst, const unsigned char *in, size_t size, void **state) {
+    SerialHeader h;
+    if (!in || !state || size != core_serialized_size()) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "DeserializeFMUState: %zu bytes, %zu expected", size,
+                 core_serialized_size());
+        return MODEL_ERROR;
+    }
+    memcpy(&h, in, sizeof h);
+    if (h.magic != STATE_MAGIC || h.version != SERIAL_VERSION || h.data_size != sizeof(ModelData) ||
+        h.token_hash != token_hash()) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "DeserializeFMUState: the bytes are not a state of this FMU");
+        return MODEL_ERROR;
+    }
+    SavedState *saved = *state;
+    if (saved && !checked(inst, saved, "DeserializeFMUState")) return MODEL_ERROR;
+    if (!saved) {
+        saved = malloc(sizeof *saved);
+        if (!saved) return MODEL_ERROR;
+        *state = saved;
+    }
+    saved->magic = STATE_MAGIC;
+    saved->mode = (Mode)h.mode;
+    memcpy(&saved->d, in + sizeof h, sizeof saved->d);
+    return MODEL_OK;
+}
+
+int core_unsupported(Instance *inst, const char *call) {
+    if (inst) core_log(inst, MODEL_ERROR, "logStatusError", "%s is not supported by this FMU", call);
+    return MODEL_ERROR;
+}

@@ -1,0 +1,80 @@
+/* Version-neutral core of the dynabrain FMU glue: the instance, the variable table, value access,
+ * and FMU states (a saved state is a copy of ModelData). fmi2_glue.c and fmi3_glue.c map the FMI
+ * 2.0 and 3.0 calls onto it. Internal to the FMU binary (hidden visibility). */
+#ifndef DYNABRAIN_FMU_GLUE_H
+#define DYNABRAIN_FMU_GLUE_H
+
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#include "fmu_model.h"
+
+#if defined(__GNUC__)
+#define GLUE_INTERNAL __attribute__((visibility("hidden")))
+#else
+#define GLUE_INTERNAL
+#endif
+
+typedef enum { T_REAL, T_INT, T_BOOL } VarType;
+typedef enum { C_INDEPENDENT, C_PARAMETER, C_INPUT, C_OUTPUT, C_LOCAL } VarCausality;
+typedef enum { V_CONSTANT, V_FIXED, V_TUNABLE, V_DISCRETE, V_CONTINUOUS } VarVariability;
+
+/* One value reference: `count` values of `type` at `offset` in ModelData. */
+typedef struct {
+    unsigned char type, causality, variability, exact;
+    size_t offset;
+    size_t count;
+    const char *name;
+} VarInfo;
+
+typedef enum { MODE_INSTANTIATED, MODE_INIT, MODE_STEP, MODE_TERMINATED, MODE_ERROR, MODE_FATAL } Mode;
+
+struct Instance;
+typedef void (*EmitFn)(struct Instance *inst, int status, const char *category, const char *message);
+
+typedef struct Instance {
+    ModelData d; /* first member: fmu_log() finds its instance from the model's data */
+    Mode mode;
+    bool logging;
+    char *name;
+    EmitFn emit;     /* the version's way to call the master's logger */
+    void *env;       /* FMI 2: the callback functions; FMI 3: the instance environment */
+    void *logger;    /* FMI 3: the log message callback */
+} Instance;
+
+/* A saved FMU state: the model data and the mode it was in. */
+typedef struct {
+    uint32_t magic;
+    Mode mode;
+    ModelData d;
+} SavedState;
+
+GLUE_INTERNAL Instance *core_new(const char *name, const char *token, EmitFn emit, void *env, void *logger,
+                                 bool logging);
+GLUE_INTERNAL void core_free(Instance *inst);
+GLUE_INTERNAL void core_reset(Instance *inst);
+GLUE_INTERNAL void core_log(Instance *inst, int status, const char *category, const char *format, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 4, 5)))
+#endif
+    ;
+GLUE_INTERNAL int core_usable(Instance *inst, const char *call);
+GLUE_INTERNAL int core_enter_init(Instance *inst, double start_time);
+GLUE_INTERNAL int core_exit_init(Instance *inst);
+GLUE_INTERNAL int core_do_step(Instance *inst, double t, double h);
+GLUE_INTERNAL int core_terminate(Instance *inst);
+/* value access; `bool8` says booleans are 1-byte C bools (FMI 3) instead of ints (FMI 2) */
+GLUE_INTERNAL int core_set(Instance *inst, VarType type, const unsigned *vr, size_t nvr, const void *values,
+                           size_t nvalues, bool bool8, const char *call);
+GLUE_INTERNAL int core_get(Instance *inst, VarType type, const unsigned *vr, size_t nvr, void *values,
+                           size_t nvalues, bool bool8, const char *call);
+GLUE_INTERNAL int core_get_state(Instance *inst, void **state);
+GLUE_INTERNAL int core_set_state(Instance *inst, void *state);
+GLUE_INTERNAL int core_free_state(Instance *inst, void **state);
+GLUE_INTERNAL size_t core_serialized_size(void);
+GLUE_INTERNAL int core_serialize(Instance *inst, void *state, unsigned char *out, size_t size);
+GLUE_INTERNAL int core_deserialize(Instance *inst, const unsigned char *in, size_t size, void **state);
+GLUE_INTERNAL int core_unsupported(Instance *inst, const char *call);
+
+#endif

@@ -1,0 +1,40 @@
+/* The model interface of a dynabrain C FMU: what a model author writes against.
+ *
+ * A model is a struct of plain values, `ModelData`, generated from the FMU's fmu.yaml into
+ * model_data.h: `time`, one field per variable (an array for a variable with `size`) and the extra
+ * fields of `c_state`. Everything that changes while the FMU runs lives in it, so the glue saves,
+ * restores and serializes the FMU state by copying it: a model needs no code for that, and must
+ * keep no state anywhere else (no globals, no pointers into the heap).
+ *
+ * The glue (fmi2_glue.c, fmi3_glue.c, fmu_core.c) implements the FMI 2.0 and 3.0 co-simulation
+ * API on top of two hooks:
+ *
+ *   model_init(m)      after the start values, parameters and inputs are set (end of
+ *                      initialization mode): compute the outputs at m->time;
+ *   model_step(m, h)   advance from m->time to m->time + h using the inputs; write the outputs.
+ *                      The glue sets m->time before and after the call.
+ *
+ * Both return one of the MODEL_* codes (the FMI status numbering): MODEL_DISCARD refuses the step
+ * (the master may roll back and retry), MODEL_ERROR fails the instance until it is reset or a saved
+ * state is restored, MODEL_FATAL ends it. Say why with fmu_log() before returning anything but OK.
+ */
+#ifndef DYNABRAIN_FMU_MODEL_H
+#define DYNABRAIN_FMU_MODEL_H
+
+#include <stdint.h>
+
+#include "model_data.h" /* generated from fmu.yaml */
+
+enum { MODEL_OK = 0, MODEL_WARNING = 1, MODEL_DISCARD = 2, MODEL_ERROR = 3, MODEL_FATAL = 4 };
+
+int model_init(ModelData *m);
+int model_step(ModelData *m, double h);
+
+/* Log a message through the master's logger (printf format). */
+void fmu_log(const ModelData *m, int status, const char *format, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 3, 4)))
+#endif
+    ;
+
+#endif

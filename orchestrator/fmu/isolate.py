@@ -1,0 +1,298 @@
+"""An FMU in a process of its own (``isolate: true``): a crash is a reported failure, not the end.
+
+The module runs a `worker` child and talks to it over a socket pair: inputs in, outputs and the
+serialized FMU state out, once per step. If the FMU kills its process (a segfault, an abort), the
+step raises `FMUCrashError` naming the module, the FMI call that was running, the signal and the
+child's last output; the world rolls back to the last good tick (the kernel does that for any
+failed step) and hands this module that tick's state. The next step starts a fresh process,
+instantiates the FMU and restores that state, so the world goes on; an FMU that cannot serialize
+its state cannot be brought back, and every later step says so (the world stops cleanly).
+
+The state lives in this process as bytes (`SerializedFMUState`), so the module can roll back and
+fork when the FMU can serialize its state, and neither when it cannot.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import mmap
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import DynabrainError
+from ..module import Capabilities, SetupContext
+from . import errors as fmu_errors
+from .errors import FMUCrashError, FMUError
+from .info import FmuInfo
+from .module import FMUModuleBase
+from .states import SerializedFMUState
+from .worker import TRACE_SIZE
+
+STOP_TIMEOUT_S = 5.0
+
+
+class _Child:
+    """One worker process: its connection, its folder (log, trace of the FMI call under way, the
+    extracted FMU), removed here even when the process dies."""
+
+    def __init__(self, label: str):
+        self.dir = Path(tempfile.mkdtemp(prefix="dynabrain-isolated-"))
+        self.log_path = self.dir / "worker.log"
+        trace_path = self.dir / "trace"
+        trace_path.write_bytes(b"\0" * TRACE_SIZE)
+        with open(trace_path, "r+b") as fh:
+            self.trace = mmap.mmap(fh.fileno(), TRACE_SIZE)
+        ours, theirs = socket.socketpair()
+        self.log = open(self.log_path, "wb")  # noqa: SIM115 - open for the child's whole life
+        try:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "dynabrain.orchestrator.fmu.worker", str(theirs.fileno()), str(trace_path)],
+                stdin=subprocess.DEVNULL, stdout=self.log, stderr=subprocess.STDOUT, pass_fds=(theirs.fileno(),),
+                close_fds=True)
+        except OSError as exc:
+            ours.close()
+            self.cleanup()
+            raise FMUError(f"{label}: cannot start the isolation process: {exc}") from None
+        finally:
+            theirs.close()
+        self.conn = Connection(ours.detach())
+
+    def call_in_progress(self) -> str:
+        """The FMI call the child was in ("" when it was between requests)."""
+        return bytes(self.trace[:TRACE_SIZE]).rstrip(b"\0").decode("ascii", "replace")
+
+    def death(self) -> str:
+        """How the process ended (waits for it briefly), and the end of its log."""
+        try:
+            rc = self.proc.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            rc = self.proc.wait()
+        if rc < 0:
+            try:
+                how = f"killed by {signal.Signals(-rc).name}"
+            except ValueError:
+                how = f"killed by signal {-rc}"
+        else:
+            how = f"exited with status {rc}"
+        self.log.flush()
+        tail = self.log_path.read_bytes()[-1500:].decode("utf-8", "replace").strip()
+        lines = [ln for ln in tail.splitlines() if ln.strip()][-6:]
+        return how + ("; its last output: " + " | ".join(lines) if lines else "")
+
+    def stop(self) -> None:
+        with contextlib.suppress(Exception):
+            self.conn.send(("close",))
+            if self.conn.poll(STOP_TIMEOUT_S):
+                self.conn.recv()
+        with contextlib.suppress(Exception):
+            self.proc.wait(STOP_TIMEOUT_S)
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        self.cleanup()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait()
+        self.cleanup()
+
+    def cleanup(self) -> None:
+        for closer in (getattr(self, "conn", None), self.trace, self.log):
+            with contextlib.suppress(Exception):
+                if closer is not None:
+                    closer.close()
+        shutil.rmtree(self.dir, ignore_errors=True)  # the log, the trace and the extracted FMU
+
+
+class IsolatedFMUModule(FMUModuleBase):
+    """An FMU module whose FMU runs in a child process. See the module docstring."""
+
+    def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (), **params: Any):
+        super().__init__(name, info, source=source, targets=targets, **params)
+        self._child: _Child | None = None
+        self._state: SerializedFMUState | None = None
+        self._pending: SerializedFMUState | None = None
+        self._lost: str | None = None  # why the FMU is gone for good
+        self._started = False
+        self._t0_ns = 0
+        self._bind_buffers()
+
+    @staticmethod
+    def capabilities(info: FmuInfo) -> Capabilities:
+        return Capabilities(can_rollback=info.can_serialize, can_fork=info.can_serialize,
+                            feedthrough=info.feedthrough)
+
+    # -- the child -------------------------------------------------------------------------------------
+    def _spawn(self) -> None:
+        """Start a worker and load the FMU in it; on any failure no process is left behind."""
+        self._child = _Child(self.info.label)
+        try:
+            self._request("open", self.info, self.name, self.CAPABILITIES.can_rollback, str(self._child.dir / "fmu"))
+        except BaseException:
+            child, self._child = self._child, None
+            if child is not None:
+                child.kill()
+            raise
+
+    def _request(self, op: str, *args: Any) -> Any:
+        child = self._child
+        if child is None:
+            raise FMUCrashError(self.name, op, None, self._lost or "the FMU process is not running")
+        try:
+            child.conn.send((op, *args))
+            reply = child.conn.recv()
+        except (EOFError, OSError) as exc:
+            raise self._crashed(op, exc) from None
+        if reply[0] == "ok":
+            return reply[1]
+        _, kind, call, message, dead = reply
+        if dead:  # fmiFatal: this process's FMU is corrupted; a new one takes over from the last good state
+            self._drop_child()
+        if call is None:
+            raise FMUError(message) if kind == "FMUError" else DynabrainError(message)
+        cls = getattr(fmu_errors, kind, fmu_errors.FMUCallError)
+        raise cls(self.name, call, None, message)
+
+    def _crashed(self, op: str, exc: BaseException) -> FMUCrashError:
+        child = self._child
+        call = child.call_in_progress()
+        during = f"during {call}" if call else "between two calls"
+        how = child.death()
+        self._child = None
+        child.cleanup()
+        self._pending = self._state
+        if self._state is None:
+            self._lost = (f"the FMU process died earlier ({how}) and {self.info.label} cannot serialize its state, "
+                          "so it cannot be brought back")
+        return FMUCrashError(self.name, call or op, None, f"the isolated FMU process died {during} ({op}): {how}; "
+                             f"{self.info.label}")
+
+    def _drop_child(self) -> None:
+        child, self._child = self._child, None
+        if child is not None:
+            child.kill()
+        self._pending = self._state
+
+    def _revive(self) -> None:
+        """A fresh process at the state of the last good tick."""
+        if self._lost is not None or self._pending is None:
+            raise FMUCrashError(self.name, "restart", None, self._lost or "the FMU process is gone and there is "
+                                "no state to restart it from")
+        self._spawn()
+        self._request("init", self._t0_ns, dict(self.params), self._inputs_now())
+        self._request("set_state", self._pending.token, self._pending.data)
+        self._state, self._pending = self._pending, None
+
+    # -- values ----------------------------------------------------------------------------------------
+    def _bind_buffers(self) -> None:
+        self._in_values, self._out_values, self._gather, self._scatter = self._spans()
+
+    def _inputs_now(self) -> np.ndarray:
+        for view, where in self._gather:
+            self._in_values[where] = view.reshape(-1)
+        return np.array(self._in_values, dtype=np.float64)
+
+    def _write_outputs(self, values: np.ndarray) -> None:
+        self._out_values[:] = values
+        for view, where in self._scatter:
+            view.reshape(-1)[...] = values[where]
+
+    # -- lifecycle -------------------------------------------------------------------------------------
+    def setup(self, ctx: SetupContext) -> None:
+        self._spawn()
+
+    def bind(self) -> None:
+        self._bind_buffers()
+
+    def start(self, t_ns: int) -> None:
+        self._t0_ns = t_ns
+        outputs, state = self._request("init", t_ns, dict(self.params), self._inputs_now())
+        self._write_outputs(outputs)
+        self._state = self._as_state(state)
+        self._started = True
+
+    def step(self, t_ns: int, dt_ns: int) -> None:
+        if self._child is None:
+            self._revive()
+        outputs, state = self._request("step", t_ns, dt_ns, self._inputs_now())
+        self._write_outputs(outputs)
+        self._state = self._as_state(state)
+
+    def _as_state(self, data: bytes | None) -> SerializedFMUState | None:
+        return None if data is None else SerializedFMUState(self.info.token, data)
+
+    def get_state(self) -> SerializedFMUState | None:
+        return self._state
+
+    def set_state(self, state: Any) -> None:
+        if not isinstance(state, SerializedFMUState):
+            raise FMUError(f"module {self.name!r}: {state!r} is not a state of an isolated FMU")
+        self._state = state
+        if self._child is None:
+            self._pending = state
+            return
+        try:
+            self._request("set_state", state.token, state.data)
+        except FMUCrashError:
+            self._pending = state  # restored when the next step starts a new process
+
+    def on_param(self, name: str, value: Any) -> None:
+        if self._child is None or not self._started:
+            return
+        reinit = not self._specs[name].runtime
+        outputs, state = self._request("params", {name: value}, reinit, self._t0_ns, dict(self.params),
+                                       self._inputs_now())
+        if reinit:
+            self._write_outputs(outputs)
+        self._state = self._as_state(state)
+
+    def close(self) -> None:
+        child, self._child = self._child, None
+        if child is not None:
+            child.stop()
+
+    def scenario_spec(self) -> dict[str, Any]:
+        return {**super().scenario_spec(), "isolate": True}
+
+    @property
+    def pid(self) -> int | None:
+        """The child's process id (None while no process runs)."""
+        return self._child.proc.pid if self._child is not None else None
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> IsolatedFMUModule:
+        """A fork: a new process, initialized and set to this module's state."""
+        clone = IsolatedFMUModule(self.name, self.info, source=self.source, targets=self.targets)
+        clone._param_values = self._param_values
+        clone._t0_ns, clone._started = self._t0_ns, self._started
+        memo[id(self)] = clone
+        if self._child is None and self._pending is None:
+            return clone
+        state = self._state
+        clone._spawn()
+        try:
+            clone._request("init", self._t0_ns, dict(self.params), self._inputs_now())
+            if state is not None:
+                clone._request("set_state", state.token, state.data)
+            clone._state = state
+        except BaseException:
+            clone.close()
+            raise
+        return clone
+
+    def __del__(self) -> None:
+        child = getattr(self, "_child", None)
+        if child is not None and child.proc.poll() is None:
+            with contextlib.suppress(Exception):
+                child.kill()

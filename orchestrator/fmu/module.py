@@ -1,0 +1,271 @@
+"""The FMU as a module: the facade the world sees.
+
+Ports and parameters come from the model description (`info`). The module's capabilities are the
+FMU's: it can roll back when the FMU declares ``canGetAndSetFMUstate`` and fork when it declares
+``canSerializeFMUstate``; otherwise the kernel refuses backtick / fork naming the module.
+
+Lifecycle: ``setup`` extracts, loads and instantiates the FMU; ``start`` sets the parameters,
+initializes at the joining tick and writes the initial outputs; ``step`` is one ``DoStep`` of the
+module's period, inputs read from and outputs written into the bus in place, the FMU state saved
+for history in the same crossing into C; ``close`` terminates and frees (also after any failure).
+A step the FMU discards or fails raises `FMUDiscardError` / `FMUCallError`; the world rolls back to
+the last good tick and reports module, call and tick.
+"""
+
+from __future__ import annotations
+
+import ctypes
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from ..module import Capabilities, Module, Param, Port, SetupContext
+from .info import DIMENSIONS, FmuInfo, Signal
+from .session import Session
+from .states import FMUState, SerializedFMUState
+
+
+def make_param(sig: Signal) -> Param:
+    """A module parameter for an FMU parameter (vectors become lists)."""
+    cast = {"real": float, "integer": int, "boolean": bool}[sig.type]
+    default: Any = cast(sig.start[0]) if not sig.shape else tuple(cast(v) for v in sig.start)
+    dimension = DIMENSIONS.get(sig.unit) if sig.type == "real" else None
+    return Param(sig.name, default, unit=sig.unit, runtime=sig.tunable, doc=sig.description, dimension=dimension)
+
+
+def make_ports(signals: Sequence[Signal]) -> tuple[Port, ...]:
+    """Block ports in order, then a view port ``name[i]`` per element of each vector."""
+    ports = [Port(s.name, s.shape, s.unit, s.description) for s in signals]
+    for s in signals:
+        if len(s.shape) == 1:
+            ports += [Port(f"{s.name}[{i + 1}]", (), s.unit, view_of=(s.name, i)) for i in range(s.shape[0])]
+    return tuple(ports)
+
+
+class FMUModuleBase(Module):
+    """Ports, parameters and capabilities of an FMU (shared by the in-process and isolated modules)."""
+
+    def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (),
+                 **params: Any):
+        self.info = info
+        self.source = source or info.path
+        self._specs = {s.name: make_param(s) for s in info.params}
+        self._inputs = make_ports(info.inputs)
+        self._outputs = make_ports(info.outputs)
+        self.CAPABILITIES = self.capabilities(info)
+        super().__init__(name, targets=targets, **params)
+        self._t0 = 0.0
+
+    @staticmethod
+    def capabilities(info: FmuInfo) -> Capabilities:
+        return Capabilities(can_rollback=info.can_get_set, can_fork=info.can_serialize, feedthrough=info.feedthrough)
+
+    def param_specs(self) -> dict[str, Param]:  # type: ignore[override]  # per instance: the FMU's parameters
+        return self._specs
+
+    def inputs(self) -> Sequence[Port]:
+        return self._inputs
+
+    def outputs(self) -> Sequence[Port]:
+        return self._outputs
+
+    def _spans(self) -> tuple[np.ndarray, np.ndarray, list, list]:
+        """The flat input and output arrays: views of the bus when the ports lie side by side in it
+        (they do: the bus lays a module's ports out in order), else buffers copied every step."""
+        gather: list = []
+        scatter: list = []
+        ins = [self.inp[s.name] for s in self.info.inputs] if self.inp else []
+        outs = [self.out[s.name] for s in self.info.outputs] if self.out else []
+        n_in = sum(s.size for s in self.info.inputs)
+        n_out = sum(s.size for s in self.info.outputs)
+        in_values = _span(ins, n_in) if ins else None
+        out_values = _span(outs, n_out) if outs else None
+        if in_values is None:
+            in_values = np.zeros(n_in)
+            gather = _pieces(ins)
+        if out_values is None:
+            out_values = np.zeros(n_out)
+            scatter = _pieces(outs)
+        return in_values, out_values, gather, scatter
+
+    def describe(self) -> dict[str, Any]:
+        out = super().describe()
+        info = self.info
+        out["fmu"] = {"source": self.source, "file": info.path, "fmi": f"{info.version}.0", "model": info.model_name,
+                      "can_get_set_state": info.can_get_set, "can_serialize_state": info.can_serialize,
+                      "not_exposed": list(info.skipped)}
+        return out
+
+    def scenario_spec(self) -> dict[str, Any]:
+        """The scenario syntax that makes this module again."""
+        params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.params.items()}
+        return {"name": self.name, "fmu": self.source, "params": params}
+
+
+def _span(views: list[np.ndarray], total: int) -> np.ndarray | None:
+    start = views[0].ctypes.data
+    at = 0
+    for v in views:
+        if v.ctypes.data != start + 8 * at or not v.flags.c_contiguous:
+            return None
+        at += v.size
+    if at != total:
+        return None
+    return np.ctypeslib.as_array((ctypes.c_double * total).from_address(start))
+
+
+def _pieces(views: list[np.ndarray]) -> list[tuple[np.ndarray, slice]]:
+    out, at = [], 0
+    for v in views:
+        out.append((v, slice(at, at + v.size)))
+        at += v.size
+    return out
+
+
+class FMUModule(FMUModuleBase):
+    """An FMU stepped in the world's process. See the module docstring."""
+
+    def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (), **params: Any):
+        super().__init__(name, info, source=source, targets=targets, **params)
+        self._session: Session | None = None
+        self._state: FMUState | SerializedFMUState | None = None
+        self._dt_ns = 0
+        self._unbind()
+
+    def _unbind(self) -> None:
+        self._pool = None
+        self._fn: Any = None
+        self._arg = 0
+        self._gather: list = []
+        self._scatter: list = []
+        self._simple = False
+        self._views: tuple[Mapping[str, np.ndarray], Mapping[str, np.ndarray]] = ({}, {})
+
+    # -- lifecycle -------------------------------------------------------------------------------------
+    def setup(self, ctx: SetupContext) -> None:
+        self._dt_ns = ctx.period_ns
+        self._session = Session(self.info, self.name, rollback=self.CAPABILITIES.can_rollback)
+        self._pool = self._session.pool
+        self.bind()
+
+    def bind(self) -> None:
+        session = self._session
+        if session is None:
+            return
+        in_values, out_values, self._gather, self._scatter = self._spans()
+        session.bind(in_values, out_values)
+        self._views = (self.inp, self.out)  # the session holds addresses into these buffers
+        self._fn, self._arg = session.stepper.fn, session.stepper.arg
+        self._simple = (self._pool is not None and not self._gather and not self._scatter
+                        and not session.in_typed and not session.out_typed)
+        if session.stepper.dt_ns != self._dt_ns:
+            session.stepper.set_step(self._dt_ns)
+
+    def start(self, t_ns: int) -> None:
+        session = self._require("start")
+        self._t0 = t_ns / 1e9
+        self._copy_in()
+        session.initialize(self._t0, dict(self.params))
+        self._copy_out()
+        self._state = session.capture() if self._pool is not None else None
+
+    def step(self, t_ns: int, dt_ns: int) -> None:
+        pool = self._pool
+        if self._simple and dt_ns == self._dt_ns:  # the hot path: reals on the bus, states for history
+            free = pool.free
+            slot = free.pop() if free else pool.take()
+            rc = self._fn(self._arg, t_ns, pool.base + 8 * slot)
+            if rc:
+                self._failed(rc, slot)
+            self._state = FMUState(pool, slot)
+            return
+        session = self._require("step")
+        self._dt_ns = dt_ns
+        if self._gather:
+            self._copy_in()
+        state = session.step(t_ns, dt_ns, pool is not None)
+        if pool is not None:
+            self._state = state
+        if self._scatter:
+            self._copy_out()
+
+    def _failed(self, rc: int, slot: int) -> None:
+        session = self._session
+        try:
+            session.failed(rc, slot)
+        finally:
+            if session.api.dead:
+                self._simple = False  # the general path refuses to call a dead instance
+
+    def _copy_in(self) -> None:
+        values = self._session.in_values
+        for view, where in self._gather:
+            values[where] = view.reshape(-1)
+
+    def _copy_out(self) -> None:
+        values = self._session.out_values
+        for view, where in self._scatter:
+            view.reshape(-1)[...] = values[where]
+
+    def _require(self, call: str) -> Session:
+        if self._session is None:
+            from .errors import FMUError
+
+            raise FMUError(f"module {self.name!r}: {call}() before setup (or after close)")
+        return self._session
+
+    # -- state -----------------------------------------------------------------------------------------
+    def get_state(self) -> FMUState | SerializedFMUState | None:
+        state = self._state
+        if state is None and self._pool is not None:
+            state = self._state = self._pool.capture()
+        return state
+
+    def set_state(self, state: Any) -> None:
+        session = self._require("set_state")
+        if session.api is not None and session.api.dead:
+            self._state = state  # nothing can be restored into a dead instance; the next step says so
+            return
+        if state is self._state and isinstance(state, FMUState):
+            session.pool.restore(state)
+            return
+        self._state = session.restore(state)
+
+    def on_param(self, name: str, value: Any) -> None:
+        session = self._session
+        if session is None or not session.initialized:
+            return
+        if self._specs[name].runtime:
+            session.set_params({name: value})
+        else:
+            self._copy_in()
+            session.reinitialize(self._t0, dict(self.params))
+            self._copy_out()
+        self._state = None
+
+    def close(self) -> None:
+        session, self._session = self._session, None
+        self._state = None
+        self._unbind()
+        if session is not None:
+            session.close()
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> FMUModule:
+        """A fork: a new instance of the FMU in the same state (through its serialized state)."""
+        clone = FMUModule(self.name, self.info, source=self.source, targets=self.targets)
+        clone._param_values = self._param_values
+        memo[id(self)] = clone
+        if self._session is None:
+            return clone
+        state = self._session.serialize(self.get_state())
+        clone._session = Session(self.info, self.name, rollback=clone.CAPABILITIES.can_rollback)
+        clone._pool = clone._session.pool
+        clone._t0, clone._dt_ns = self._t0, self._dt_ns
+        try:
+            clone._session.initialize(self._t0, dict(self.params))
+            clone._state = clone._session.restore(state)
+        except BaseException:
+            clone.close()
+            raise
+        return clone

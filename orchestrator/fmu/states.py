@@ -1,0 +1,131 @@
+"""FMU states for history: handles from ``GetFMUstate``, kept in reusable slots.
+
+History saves every module's state every tick, so an FMU state must be cheap to take and must not
+leak. A `StatePool` keeps FMU state handles in a slot array; `FMUState` owns one slot while
+something (history, a snapshot) refers to it, and gives it back when dropped. Taking a state into a
+slot that held one before overwrites it in place (the FMI standard allows ``GetFMUstate`` on a
+handle it returned), so the steady state allocates nothing. The pool frees every handle when the
+module closes; a state dropped after that does nothing.
+
+Pickling an `FMUState` serializes it (`SerializedFMUState`, plain bytes), when the FMU can.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .api import FmuApi
+from .errors import FMUError
+
+
+@dataclass(frozen=True)
+class SerializedFMUState:
+    """An FMU state as bytes (``SerializeFMUstate``): it survives the FMU instance and the process,
+    and any instance of the same FMU (same token) can take it back."""
+
+    token: str
+    data: bytes
+
+    def __repr__(self) -> str:
+        return f"<SerializedFMUState {len(self.data)} bytes>"
+
+
+class StatePool:
+    """The state slots of one FMU instance."""
+
+    def __init__(self, api: FmuApi, capacity: int = 16):
+        self.api = api
+        self.token = api.info.token
+        self.slots = np.zeros(capacity, dtype=np.uint64)
+        self.base = self.slots.ctypes.data
+        self.free = list(range(capacity - 1, -1, -1))
+        self.alive = True
+
+    def take(self) -> int:
+        """A free slot (its handle, if any, is overwritten by the next save into it)."""
+        try:
+            return self.free.pop()
+        except IndexError:
+            return self._grow()
+
+    def _grow(self) -> int:
+        n = len(self.slots)
+        bigger = np.zeros(2 * n, dtype=np.uint64)
+        bigger[:n] = self.slots
+        self.slots, self.base = bigger, bigger.ctypes.data
+        self.free.extend(range(2 * n - 1, n, -1))
+        return n
+
+    def address(self, slot: int) -> int:
+        return self.base + 8 * slot
+
+    def capture(self) -> FMUState:
+        """Save the FMU's state now."""
+        slot = self.take()
+        try:
+            self.api.get_state(self.address(slot))
+        except BaseException:
+            self.free.append(slot)
+            raise
+        return FMUState(self, slot)
+
+    def restore(self, state: FMUState) -> None:
+        self.api.set_state(int(self.slots[state.slot]))
+
+    def serialize(self, slot: int) -> SerializedFMUState:
+        if not self.alive:
+            raise FMUError(f"{self.api.info.label}: this state belongs to a closed FMU instance")
+        return SerializedFMUState(self.token, self.api.serialize(int(self.slots[slot])))
+
+    def load(self, state: SerializedFMUState) -> FMUState:
+        """Deserialize ``state`` into a slot of this pool."""
+        if state.token != self.token:
+            raise FMUError(f"{self.api.info.label}: the state is of another FMU (token {state.token})")
+        slot = self.take()
+        try:
+            self.api.deserialize(state.data, self.address(slot))
+        except BaseException:
+            self.free.append(slot)
+            raise
+        return FMUState(self, slot)
+
+    def in_use(self) -> int:
+        return len(self.slots) - len(self.free)
+
+    def close(self) -> None:
+        """Free every handle (before the instance is freed)."""
+        if not self.alive:
+            return
+        self.alive = False
+        api = self.api
+        if api.instance is None or api.dead:
+            return
+        for slot in np.flatnonzero(self.slots):
+            try:
+                api.free_state(self.address(int(slot)))
+            except Exception:  # a state the FMU refuses to free is its leak, not a reason to stop
+                continue
+
+
+class FMUState:
+    """One saved FMU state (a slot of a `StatePool`). Immutable; dropping it frees its slot."""
+
+    __slots__ = ("pool", "slot")
+
+    def __init__(self, pool: StatePool, slot: int):
+        self.pool = pool
+        self.slot = slot
+
+    def __del__(self) -> None:
+        pool = self.pool
+        if pool.alive:
+            pool.free.append(self.slot)
+
+    def __reduce__(self) -> tuple:
+        serialized = self.pool.serialize(self.slot)
+        return (SerializedFMUState, (serialized.token, serialized.data))
+
+    def __repr__(self) -> str:  # no slot number: equal states of one instance print alike
+        return f"<FMUState of {self.pool.api.name}>"

@@ -1,0 +1,125 @@
+"""The child process of an isolated FMU (``isolate: true``): runs one `Session` for its parent.
+
+    python -m dynabrain.orchestrator.fmu.worker FD TRACE_FILE
+
+Requests come over the connection on file descriptor FD as tuples ``(op, *args)``; each gets
+``("ok", value)`` or ``("error", class name, FMI call, message, dead)``. Before each FMI call the
+worker writes the call's name into TRACE_FILE (shared memory), so when the FMU kills the process the
+parent can say which call did it. States cross as serialized bytes: they outlive this process.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import sys
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from ..errors import DynabrainError, ModuleError
+from .info import FmuInfo
+from .session import Session
+from .states import FMUState, SerializedFMUState
+
+TRACE_SIZE = 64
+
+
+class Worker:
+    def __init__(self, trace: mmap.mmap):
+        self.trace = trace
+        self.session: Session | None = None
+        self.keep: FMUState | None = None  # the current state (its slot stays taken while it is current)
+
+    def mark(self, call: str) -> None:
+        self.trace[:TRACE_SIZE] = call.encode()[:TRACE_SIZE].ljust(TRACE_SIZE, b"\0")
+
+    # -- requests ------------------------------------------------------------------------------------
+    def open(self, info: FmuInfo, name: str, rollback: bool, folder: str) -> tuple[int, int]:
+        self.mark("load")
+        self.session = s = Session(info, name, rollback=rollback, folder=folder)
+        s.api.on_call = self.mark
+        s.stepper.use_python(self.mark)
+        s.bind(np.zeros(s.n_in_all), np.zeros(s.n_out_all))
+        return s.n_in_all, s.n_out_all
+
+    def init(self, t0_ns: int, params: dict[str, Any], inputs: np.ndarray) -> tuple[np.ndarray, bytes | None]:
+        s = self.session
+        s.in_values[:] = inputs
+        s.initialize(t0_ns / 1e9, params)
+        return s.out_values.copy(), self._state(None)
+
+    def step(self, t_ns: int, dt_ns: int, inputs: np.ndarray) -> tuple[np.ndarray, bytes | None]:
+        s = self.session
+        s.in_values[:] = inputs
+        state = s.step(t_ns, dt_ns, s.pool is not None)
+        return s.out_values.copy(), self._state(state)
+
+    def params(self, values: dict[str, Any], reinit: bool, t0_ns: int, all_params: dict[str, Any],
+               inputs: np.ndarray) -> tuple[np.ndarray, bytes | None]:
+        s = self.session
+        if reinit:
+            s.in_values[:] = inputs
+            s.reinitialize(t0_ns / 1e9, all_params)
+        else:
+            s.set_params(values)
+        return s.out_values.copy(), self._state(None)
+
+    def set_state(self, token: str, data: bytes) -> None:
+        self.keep = self.session.restore(SerializedFMUState(token, data))
+
+    def close(self) -> None:
+        self.keep = None
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def _state(self, state: FMUState | None) -> bytes | None:
+        s = self.session
+        if s.pool is None or not s.info.can_serialize:
+            return None
+        if state is None:
+            state = s.capture()
+        self.keep = state
+        return s.serialize(state).data
+
+
+def serve(conn: Connection, worker: Worker) -> None:
+    while True:
+        try:
+            op, *args = conn.recv()
+        except (EOFError, OSError):
+            break
+        try:
+            conn.send(("ok", getattr(worker, op)(*args)))
+        except ModuleError as exc:
+            dead = worker.session is not None and worker.session.api is not None and worker.session.api.dead
+            conn.send(("error", type(exc).__name__, exc.call, str(exc.cause), dead))
+        except DynabrainError as exc:
+            conn.send(("error", type(exc).__name__, None, str(exc), False))
+        except Exception as exc:
+            conn.send(("error", "FMUError", None, f"{type(exc).__name__}: {exc}", False))
+        worker.mark("")
+        if op == "close":
+            break
+
+
+def main(argv: list[str]) -> int:
+    fd, trace_path = int(argv[1]), argv[2]
+    with open(trace_path, "r+b") as fh:
+        trace = mmap.mmap(fh.fileno(), TRACE_SIZE)
+    worker = Worker(trace)
+    conn = Connection(fd)
+    try:
+        serve(conn, worker)
+    finally:
+        worker.close()
+        conn.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.stdout = sys.stderr  # an FMU's prints and ours go to the log, never into the protocol
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    raise SystemExit(main(sys.argv))

@@ -1,0 +1,193 @@
+"""Isolation (``isolate: true``): an FMU in its own process steps exactly like one in ours, and one
+that segfaults or aborts is reported with module, call and tick while the world rolls back and goes
+on (or, when the FMU's state cannot be kept, stops cleanly). The MCAP log stays readable."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from dynabrain.orchestrator.checks import check_module
+from dynabrain.orchestrator.fmu import FMUCallError, FMUCrashError, make_fmu_module
+from dynabrain.orchestrator.mcap_logger import McapLogger
+from dynabrain.orchestrator.world import World
+
+FMUS = Path(__file__).resolve().parents[1] / "fmus"
+
+CRASHY_VARS = """\
+  - {name: u, causality: input}
+  - {name: y, causality: output}
+  - {name: x, causality: local}
+  - {name: how, type: integer, causality: parameter, start: 0, description: "0 segfault, 1 abort, 2 fatal"}
+  - {name: at_init, type: boolean, causality: parameter, start: false}
+"""
+CRASHY_C = """
+#include <stdio.h>
+#include <stdlib.h>
+#include "fmu_model.h"
+
+static int crash(const ModelData *m) {
+    fprintf(stderr, "crashy: giving up at t=%g\\n", m->time);
+    fflush(stderr);
+    if (m->how == 2) { fmu_log(m, MODEL_FATAL, "beyond repair"); return MODEL_FATAL; }
+    if (m->how == 1) abort();
+    volatile int *p = 0;
+    *p = 42;
+    return MODEL_OK;
+}
+int model_init(ModelData *m) { if (m->at_init) return crash(m); m->y = m->x; return MODEL_OK; }
+int model_step(ModelData *m, double h) {
+    if (m->u > 0.5) return crash(m);
+    m->x += m->u * h;
+    m->y = m->x;
+    return MODEL_OK;
+}
+"""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def cache(tmp_path_factory):
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("DYNABRAIN_CACHE", str(tmp_path_factory.mktemp("cache")))
+        yield
+
+
+def crashy_folder(root: Path, serialize: bool = True) -> Path:
+    folder = root / ("crashy" if serialize else "crashy_plain")
+    if not folder.exists():
+        folder.mkdir(parents=True)
+        caps = "" if serialize else "capabilities: {get_set_state: false, serialize: false}\n"
+        (folder / "fmu.yaml").write_text(f"name: crashy\nfmi: [2, 3]\n{caps}variables:\n{CRASHY_VARS}")
+        (folder / "crashy.c").write_text(CRASHY_C)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def crashy(tmp_path_factory) -> Path:
+    return crashy_folder(tmp_path_factory.mktemp("src"))
+
+
+def module(ref, name: str, isolate: bool = True, **params):
+    return make_fmu_module(name, str(ref), base_dir=".", params=params, targets=[], isolate=isolate)
+
+
+@pytest.mark.parametrize("version", [2, 3])
+def test_isolated_fmu_steps_bit_for_bit_like_one_in_process(version):
+    worlds = []
+    for isolate in (False, True):
+        w = World(step="1ms")
+        w.add_module(module(f"{FMUS / 'sensor_filter'}@fmi{version}", "s", isolate, sigma=0.1, seed=3))
+        w.set("s.u", [0.1, 0.2, 0.3])
+        worlds.append(w)
+    try:
+        for _ in range(20):
+            for w in worlds:
+                w.tick()
+            assert np.array_equal(worlds[0].snapshot().bus, worlds[1].snapshot().bus)
+        for w in worlds:
+            w.backtick(8)
+            w.set("s.sigma", 0.5)
+            w.tick(4)
+        assert np.array_equal(worlds[0].snapshot().bus, worlds[1].snapshot().bus)
+    finally:
+        for w in worlds:
+            w.close()
+
+
+def test_isolated_module_passes_check_module():
+    check_module(module(FMUS / "servo", "servo"), step="2ms", ticks=10).assert_ok()
+
+
+@pytest.mark.parametrize(("how", "signal", "version"), [(0, "SIGSEGV", 2), (1, "SIGABRT", 2), (0, "SIGSEGV", 3)])
+def test_crash_is_reported_rolled_back_and_the_world_goes_on(crashy, how, signal, version):
+    ref = World(step="1ms")
+    w = World(step="1ms")
+    try:
+        ref.add_module(module(f"{crashy}@fmi{version}", "c", isolate=False, how=how))
+        w.add_module(module(f"{crashy}@fmi{version}", "c", how=how))
+        for world in (ref, w):
+            world.set("c.u", 0.25)
+            world.tick(10)
+        pid = w.modules["c"].pid
+        w.set("c.u", 1.0)
+        with pytest.raises(FMUCrashError) as err:
+            w.tick()
+        e = err.value
+        assert (e.module, e.tick, e.call) == ("c", 10, f"fmi{version}DoStep")
+        assert signal in str(e) and "giving up at t=0.01" in str(e) and "crashy" in str(e)
+        assert w.tick_count == 10 and w.get("c.y") == ref.get("c.y")
+        w.set("c.u", 0.25)
+        w.tick(10)  # a new process, restored to tick 10, takes over
+        ref.tick(10)
+        assert w.modules["c"].pid not in (None, pid)
+        assert w.get("c.y") == ref.get("c.y")
+        w.backtick(15)  # history from before the crash still restores
+        ref.backtick(15)
+        assert w.get("c.y") == ref.get("c.y")
+    finally:
+        ref.close()
+        w.close()
+
+
+def test_fatal_status_in_isolation_restarts_the_fmu_from_the_last_good_tick(crashy):
+    with World(step="1ms") as w:
+        w.add_module(module(crashy, "c", how=2))
+        w.set("c.u", 0.5)
+        w.tick(4)
+        y = w.get("c.y")
+        w.set("c.u", 0.9)
+        with pytest.raises(FMUCallError, match=r"fmi2Fatal.*beyond repair"):
+            w.tick()
+        assert w.modules["c"].pid is None  # the corrupted process is gone
+        w.set("c.u", 0.5)
+        w.tick()
+        assert w.get("c.y") == pytest.approx(y + 0.0005)
+
+
+def test_crash_of_an_fmu_without_serializable_state_stops_cleanly(tmp_path):
+    m = module(crashy_folder(tmp_path, serialize=False), "c")
+    assert not m.CAPABILITIES.can_rollback
+    with World(step="1ms") as w:
+        w.add_module(m)
+        w.tick(3)
+        w.set("c.u", 1.0)
+        with pytest.raises(FMUCrashError, match=r"SIGSEGV"):
+            w.tick()
+        with pytest.raises(FMUCrashError, match=r"cannot serialize its state, so it cannot be brought back"):
+            w.tick()
+        assert w.tick_count == 3
+    assert m.pid is None
+
+
+def test_crash_during_initialization_refuses_the_module(crashy):
+    with World(step="1ms") as w:
+        with pytest.raises(FMUCrashError, match=r"fmi2ExitInitializationMode.*SIGSEGV"):
+            w.add_module(module(crashy, "c", at_init=True))
+        assert w.modules == {}
+        w.tick()
+
+
+def test_the_mcap_log_stays_readable_after_a_crash(crashy, tmp_path):
+    path = tmp_path / "run.mcap"
+    with World(step="1ms") as w:
+        w.add_module(module(crashy, "c"))
+        logger = McapLogger(path).attach(w)
+        w.set("c.u", 0.25)
+        w.tick(20)
+        w.set("c.u", 1.0)
+        with pytest.raises(FMUCrashError):
+            w.tick()
+        w.set("c.u", 0.25)
+        w.tick(20)
+        logger.close()
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        assert reader.get_summary() is not None
+        events = [json.loads(m.data) for _s, ch, m in reader.iter_messages() if ch.topic == "/events"]
+    errors = [e for e in events if e["kind"] == "error"]
+    assert len(errors) == 1 and errors[0]["tick"] == 20 and "SIGSEGV" in errors[0]["detail"]["message"]
+    assert errors[0]["detail"]["module"] == "c"
