@@ -5,7 +5,17 @@ VENV := .venv
 BIN := $(VENV)/bin
 SCENARIO ?= scenarios/two_cubes.yaml
 
-.PHONY: run test lint bench setup
+.PHONY: run test lint bench setup system-deps
+
+# Offscreen rendering for the camera module (EGL with Mesa). Installed when missing and we are root
+# (as in CI); otherwise a note, and the camera says at load that no renderer works.
+EGL_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
+system-deps:
+	@if ldconfig -p | grep -q 'libEGL.so.1 '; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(EGL_PACKAGES) >/dev/null) \
+	  || echo "note: could not install $(EGL_PACKAGES); camera tests will skip"; \
+	else echo "note: $(EGL_PACKAGES) are not installed; camera tests will skip"; fi
 
 $(BIN)/dynabrain: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -13,7 +23,7 @@ $(BIN)/dynabrain: pyproject.toml
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $@
 
-setup: $(BIN)/dynabrain
+setup: system-deps $(BIN)/dynabrain
 
 run: setup
 	$(BIN)/dynabrain run $(SCENARIO)
@@ -23,4 +33,4 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 bench: setup
-	for b in bench/*.py; do $(BIN)/python $$b || exit 1; done
+	for b in bench/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

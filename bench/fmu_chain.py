@@ -17,26 +17,21 @@ Run: ``.venv/bin/python bench/fmu_chain.py``  (builds the FMU into the dynabrain
 
 from __future__ import annotations
 
+import itertools
 import os
-import sys
+import subprocess
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
 
-# bench/logging.py would shadow the standard library's logging for a script run from bench/
-sys.path[:] = [p for p in sys.path if os.path.abspath(p or ".") != os.path.dirname(os.path.abspath(__file__))]
+import numpy as np
 
-import itertools  # noqa: E402
-import subprocess  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from dynabrain.orchestrator.fmu import load_fmu_info  # noqa: E402
-from dynabrain.orchestrator.fmu.build import compiler  # noqa: E402
-from dynabrain.orchestrator.fmu.module import FMUModule  # noqa: E402
-from dynabrain.orchestrator.module import Capabilities  # noqa: E402
-from dynabrain.orchestrator.world import World  # noqa: E402
+from dynabrain.orchestrator.fmu import load_fmu_info
+from dynabrain.orchestrator.fmu.build import compiler
+from dynabrain.orchestrator.fmu.module import FMUModule
+from dynabrain.orchestrator.module import Capabilities
+from dynabrain.orchestrator.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
 N_FMUS, STEPS, DT_NS, CHANNELS = 10, 10_000, 1_000_000, 4

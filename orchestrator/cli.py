@@ -54,18 +54,20 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
         _fail_scenario(exc)
     from .cli_log import attach_run_outputs
 
-    outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[t]}"),
-                  TimeRemainingColumn(), console=console, transient=True, disable=quiet) as bar:
-        task = bar.add_task(sc.model.name, total=sc.duration_ns // world.dt_ns, t="")
+    try:
+        outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console)
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[t]}"),
+                      TimeRemainingColumn(), console=console, transient=True, disable=quiet) as bar:
+            task = bar.add_task(sc.model.name, total=sc.duration_ns // world.dt_ns, t="")
 
-        def progress(done: int, total: int) -> None:
-            bar.update(task, completed=done, t=f"t={done * world.dt_ns / 1e9:.3f}s")
+            def progress(done: int, total: int) -> None:
+                bar.update(task, completed=done, t=f"t={done * world.dt_ns / 1e9:.3f}s")
 
-        result = run_scenario(sc, world, progress=progress, realtime=True if realtime else None)
-    history = world.history.describe()
-    outputs.finish(result)
-    world.close()
+            result = run_scenario(sc, world, progress=progress, realtime=True if realtime else None)
+        history = world.history.describe()
+        outputs.finish(result)
+    finally:
+        world.close()  # also on Ctrl-C: observers (the log) are closed and stay readable
     _summary(result, history)
     raise typer.Exit(0 if result.ok else 1)
 

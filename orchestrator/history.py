@@ -19,16 +19,18 @@ class WorldState:
     costs a reference. ``world_id`` ties a snapshot to the world (and module objects) it came from.
     """
 
-    __slots__ = ("bus", "states", "structure", "tick", "world_id")
+    __slots__ = ("bus", "id", "states", "structure", "tick", "world_id")
 
     def __init__(self, world_id: int, tick: int, structure: Structure, bus: np.ndarray,
-                 states: tuple[tuple[dict, Any] | None, ...]):
+                 states: tuple[tuple[dict, Any] | None, ...], id: int = 0):
         # a plain class with slots: one is made every tick, and a frozen dataclass costs ~1 us more
         self.world_id = world_id
         self.tick = tick
         self.structure = structure
         self.bus = bus
         self.states = states
+        self.id = id
+        """A snapshot's number within its world (1, 2, ...); 0 for history entries."""
 
     def __repr__(self) -> str:
         return f"<WorldState tick={self.tick} modules={len(self.states)} bus={self.bus.size}>"

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import fnmatch
+import itertools
 import threading
 import time as _time
 import zlib
@@ -63,6 +64,7 @@ class World:
         self._stop_flag = threading.Event()
         self._thread_error: BaseException | None = None
         self._source = "api"  # who is editing: "scenario" while scheduled actions run
+        self._snapshots = itertools.count(1)
         self.error: BaseException | None = None
         if core is not None:
             self.add_module(core)
@@ -225,10 +227,14 @@ class World:
                                 "(capability can_rollback is false)")
 
     def snapshot(self) -> WorldState:
-        """The whole world's state now; `restore` brings it back."""
+        """The whole world's state now; `restore` brings it back. Each snapshot has an ``id``, and
+        observers get a ``snapshot`` event with it (a replay can then restore the same one)."""
         with self._lock:
             self._check_open()
-            return self._capture()
+            state = self._capture()
+            state.id = next(self._snapshots)
+            self._emit("snapshot", id=state.id)
+            return state
 
     def restore(self, state: WorldState) -> None:
         """Return to a snapshot of this world. History restarts at the restored state."""
@@ -242,7 +248,7 @@ class World:
             self._history.clear()
             self._history.push(state)
             self._dirty = False
-            self._emit("restore", from_tick=from_tick)
+            self._emit("restore", from_tick=from_tick, snapshot=state.id)
             for obs in self._observers:
                 obs.on_rollback(self._view, from_tick)
 
@@ -424,7 +430,8 @@ class World:
             expand_names([body], core.bodies(), "body", "place")
             core.place(body, pos, quat)
             self._write_core_outputs()
-            self._edited("place", body=body, pos=list(map(float, pos)))
+            self._edited("place", body=body, pos=list(map(float, pos)),
+                         quat=None if quat is None else list(map(float, quat)))
 
     def _write_core_outputs(self) -> None:
         refresh = getattr(self._core, "refresh_outputs", None)

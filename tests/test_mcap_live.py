@@ -1,0 +1,133 @@
+"""The live view: a real foxglove-sdk WebSocket server on loopback, read by a minimal client speaking
+the Foxglove WebSocket protocol (subscribe, then binary message frames)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import select
+import socket
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+
+from dynabrain.orchestrator.errors import DynabrainError
+from dynabrain.orchestrator.mcap_live import LiveView
+from dynabrain.orchestrator.mcap_schema import BusCodec, FieldNumbers
+from dynabrain.orchestrator.observers import WorldView
+from dynabrain.orchestrator.scenario import load_scenario
+
+SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
+
+
+class Client:
+    """Just enough WebSocket (RFC 6455) for the Foxglove protocol: text frames out, any frame in."""
+
+    def __init__(self, port: int):
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self.sock.sendall((f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+                           "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n").encode())
+        head = b""
+        while b"\r\n\r\n" not in head:
+            head += self.sock.recv(1)
+        assert head.startswith(b"HTTP/1.1 101"), head
+
+    def _exact(self, n: int) -> bytes:
+        out = b""
+        while len(out) < n:
+            part = self.sock.recv(n - len(out))
+            assert part, "the server closed the connection"
+            out += part
+        return out
+
+    def read(self) -> tuple[int, bytes]:
+        b0, b1 = self._exact(2)
+        n = b1 & 0x7F
+        if n == 126:
+            n = struct.unpack(">H", self._exact(2))[0]
+        elif n == 127:
+            n = struct.unpack(">Q", self._exact(8))[0]
+        return b0 & 0x0F, self._exact(n)
+
+    def send(self, obj: dict) -> None:
+        data = json.dumps(obj).encode()
+        mask = os.urandom(4)
+        head = bytes([0x81]) + (bytes([0x80 | len(data)]) if len(data) < 126 else
+                                bytes([0x80 | 126]) + struct.pack(">H", len(data)))
+        self.sock.sendall(head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data)))
+
+
+def test_live_view_serves_the_bus_and_poses_over_websocket():
+    sc = load_scenario(SCENARIOS / "two_cubes.yaml")
+    world = sc.build()
+    live = LiveView(port=0, max_rate_hz=0).attach(world)
+    try:
+        client = Client(live.port)
+        channels: dict[str, dict] = {}
+        while not {"/bus", "/tf", "/scene", "/events"} <= set(channels):
+            opcode, data = client.read()
+            msg = json.loads(data) if opcode == 1 else {}
+            if msg.get("op") == "advertise":
+                channels.update({c["topic"]: c for c in msg["channels"]})
+        assert channels["/tf"]["schemaName"] == "foxglove.FrameTransforms"
+        assert channels["/bus"]["schemaName"] == "dynabrain.layout1.Bus" and channels["/bus"]["encoding"] == "protobuf"
+        client.send({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channels["/bus"]["id"]},
+                                                          {"id": 2, "channelId": channels["/tf"]["id"]}]})
+        codec = BusCodec.from_view(WorldView(world).signal_slots(), world.snapshot().bus.size, FieldNumbers(), 1)
+        seen, got = {}, {1: [], 2: []}
+        while not got[1]:  # the subscription is live once a message arrives
+            world.tick()
+            seen[world.tick_count] = world.snapshot().bus
+            _read_until(client, got, lambda: got[1], timeout=0.05)
+        for _ in range(3):
+            world.tick()
+            seen[world.tick_count] = world.snapshot().bus
+        last = world.tick_count * 2_000_000
+        assert _read_until(client, got, lambda: got[1][-1][0] == last and got[2][-1][0] == last, timeout=10)
+        for t_ns, payload in got[1]:
+            rows, ticks, _epochs = codec.decode(np.frombuffer(payload, dtype=np.uint8))
+            assert ticks[0] * 2_000_000 == t_ns and rows[0].tobytes() == seen[int(ticks[0])].tobytes()
+        assert len(got[1]) >= 4
+        tf = FrameTransforms.FromString(got[2][-1][1])
+        aa = next(t for t in tf.transforms if t.child_frame_id == "aa")
+        assert aa.translation.z == world.get("aa.pos")[2]
+    finally:
+        world.close()
+    assert live.server is None  # closing the world stops the server
+
+
+def _read_until(client: Client, got: dict, done, timeout: float) -> bool:
+    """Read message frames (subscription id -> [(time, payload)]) until ``done()`` or ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while not done():
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([client.sock], [], [], left)[0]:
+            return False
+        opcode, data = client.read()
+        if opcode == 2 and data[0] == 0x01:
+            sub, t_ns = struct.unpack_from("<IQ", data, 1)
+            got[sub].append((t_ns, data[13:]))
+    return True
+
+
+def test_live_view_serves_loopback_only():
+    with pytest.raises(DynabrainError, match="loopback only"):
+        LiveView(host="0.0.0.0")
+
+
+def test_run_live_prints_where_it_serves(monkeypatch):
+    from typer.testing import CliRunner
+
+    from dynabrain.orchestrator.cli import app
+
+    monkeypatch.setenv("DYNABRAIN_LIVE_PORT", "0")
+    result = CliRunner().invoke(app, ["run", str(SCENARIOS / "two_cubes.yaml"), "--live", "--duration", "5s", "-q"])
+    assert result.exit_code == 0, result.output
+    assert "live view: ws://127.0.0.1:" in result.output
