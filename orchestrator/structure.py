@@ -106,9 +106,11 @@ class BusLayout:
                               f"row {index} of {base_name!r} {base.shape}")
         return Slot(base.start + index * row, row, port.shape, port, direction)
 
-    def indices(self, name: str) -> np.ndarray:
-        slot = self.slots[name]
-        return np.arange(slot.start, slot.start + slot.size, dtype=np.intp)
+
+
+Copies = tuple[tuple[int | slice | np.ndarray, int | slice | np.ndarray], ...]
+"""Bus copies ``buf[dst] = buf[src]``: a few index or slice pairs (contiguous runs), or one pair of
+index arrays."""
 
 
 @dataclass(frozen=True)
@@ -116,8 +118,7 @@ class Step:
     """One entry of the schedule: a module and the copies its direct inputs need before it steps."""
 
     record: ModuleRecord
-    src: np.ndarray | None
-    dst: np.ndarray | None
+    copies: Copies
 
 
 @dataclass(frozen=True)
@@ -126,10 +127,14 @@ class Structure:
     connections: tuple[Connection, ...] = ()
     layout: BusLayout = field(default_factory=lambda: BusLayout(()))
     plan: tuple[Step, ...] = ()
-    delayed_src: np.ndarray | None = None
-    delayed_dst: np.ndarray | None = None
-    savers: tuple[tuple[Module, bool], ...] = ()
-    """(module, can_rollback) per record, in record order: what history saves each tick."""
+    delayed: Copies = ()
+    """Copies of the delayed connections, made at the start of each tick."""
+    savers: tuple[tuple[Module, int], ...] = ()
+    """(module, how) per record, in record order: what history saves each tick. ``how`` is
+    `SAVE_NONE` (cannot roll back), `SAVE_PARAMS` (no state of its own: only its parameters) or
+    `SAVE_STATE`."""
+    dispatch: tuple[tuple, ...] = ()
+    """The plan flattened for the hot loop: (name, step, period_ns, period_ticks, phase, copies)."""
 
     def record(self, name: str) -> ModuleRecord | None:
         for rec in self.records:
@@ -166,20 +171,41 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
     for rec in order:
         direct = [c for c in connections if not c.delay and split_signal(c.dst)[0] == rec.name
                   and by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
-        src, dst = _gather(layout, direct)
-        plan.append(Step(rec, src, dst))
+        plan.append(Step(rec, _copies(layout, direct)))
     delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
-    dsrc, ddst = _gather(layout, delayed)
-    savers = tuple((rec.module, rec.module.CAPABILITIES.can_rollback) for rec in records)
-    return Structure(records, connections, layout, tuple(plan), dsrc, ddst, savers)
+    savers = tuple((rec.module, _save_kind(rec.module)) for rec in records)
+    dispatch = tuple((st.record.name, st.record.module.step, st.record.period_ns, st.record.period_ticks,
+                      st.record.phase, st.copies) for st in plan)
+    return Structure(records, connections, layout, tuple(plan), _copies(layout, delayed), savers, dispatch)
 
 
-def _gather(layout: BusLayout, conns: Sequence[Connection]) -> tuple[np.ndarray | None, np.ndarray | None]:
-    if not conns:
-        return None, None
-    src = np.concatenate([layout.indices(c.src) for c in conns])
-    dst = np.concatenate([layout.indices(c.dst) for c in conns])
-    return src, dst
+SAVE_NONE, SAVE_PARAMS, SAVE_STATE = 0, 1, 2
+
+
+def _save_kind(module: Module) -> int:
+    if not module.CAPABILITIES.can_rollback:
+        return SAVE_NONE
+    if type(module).get_state is Module.get_state and "get_state" not in vars(module):
+        return SAVE_PARAMS  # the base get_state: nothing to save but the parameters
+    return SAVE_STATE
+
+
+def _copies(layout: BusLayout, conns: Sequence[Connection], max_runs: int = 4) -> Copies:
+    """The copies for ``conns``: contiguous runs merged into slices (a slice copy costs a fraction of
+    a fancy-index copy), or one pair of index arrays when there are more than ``max_runs`` runs."""
+    runs: list[list[int]] = []  # [dst start, src start, size]
+    for conn in sorted(conns, key=lambda c: layout.slots[c.dst].start):
+        dst, src = layout.slots[conn.dst], layout.slots[conn.src]
+        last = runs[-1] if runs else None
+        if last is not None and last[0] + last[2] == dst.start and last[1] + last[2] == src.start:
+            last[2] += dst.size
+        else:
+            runs.append([dst.start, src.start, dst.size])
+    if len(runs) <= max_runs:  # single values copied by index: cheaper still than a slice
+        return tuple((d, s) if n == 1 else (slice(d, d + n), slice(s, s + n)) for d, s, n in runs)
+    dst_idx = np.concatenate([np.arange(d, d + n) for d, _, n in runs])
+    src_idx = np.concatenate([np.arange(s, s + n) for _, s, n in runs])
+    return ((dst_idx, src_idx),)
 
 
 def _check_connection(conn: Connection, layout: BusLayout, by_name: dict[str, ModuleRecord]) -> None:

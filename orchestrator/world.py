@@ -31,7 +31,7 @@ from .errors import DynabrainError, ForkError, ModuleError, RollbackError, Wirin
 from .history import History, WorldState
 from .module import Module, SetupContext
 from .observers import Observer, WorldEvent, WorldView
-from .structure import Connection, ModuleRecord, Structure, build_structure, split_signal
+from .structure import SAVE_STATE, Connection, ModuleRecord, Structure, build_structure, split_signal
 from .suggest import did_you_mean
 from .units import NS_PER_S, format_duration, parse_duration_ns
 
@@ -162,17 +162,15 @@ class World:
                 self._source = "api"
             structure = self._structure
             buf = self._buf
-            if structure.delayed_src is not None:
-                buf[structure.delayed_dst] = buf[structure.delayed_src]
+            for dst, src in structure.delayed:
+                buf[dst] = buf[src]
             t_ns = n * self.dt_ns
-            for step in structure.plan:
-                rec = step.record
-                if rec.period_ticks != 1 and (n - rec.phase) % rec.period_ticks:
+            for current, step, period_ns, period_ticks, phase, copies in structure.dispatch:  # noqa: B007 - `current` names a failing module below
+                if period_ticks != 1 and (n - phase) % period_ticks:
                     continue
-                current = rec.name
-                if step.src is not None:
-                    buf[step.dst] = buf[step.src]
-                rec.module.step(t_ns, rec.period_ns)
+                for dst, src in copies:
+                    buf[dst] = buf[src]
+                step(t_ns, period_ns)
         except Exception as exc:  # roll back to the last good tick, then report
             self._source = "api"
             raise self._rollback_failed_tick(n, current, exc) from exc
@@ -206,7 +204,8 @@ class World:
     # -- state ----------------------------------------------------------------------------------------
     def _capture(self) -> WorldState:
         structure = self._structure
-        states = tuple([(m._param_values, m.get_state()) if ok else None for m, ok in structure.savers])
+        states = tuple([(m._param_values, m.get_state() if how == SAVE_STATE else None) if how else None
+                        for m, how in structure.savers])
         return WorldState(id(self), self._tick, structure, self._buf.copy(), states)
 
     def _apply(self, state: WorldState) -> None:
