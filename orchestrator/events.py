@@ -69,6 +69,8 @@ def build_event(ev: EventCfg, world: World, builder: _Builder, path: Path) -> tu
 
 def _set(value: dict[str, Any], world: World, builder: _Builder, path: Path):
     for name in value:
+        if name.partition(".")[0] in builder.later_modules:
+            continue  # a module an earlier event adds: checked when the event fires
         try:
             target = world.settable(name)
         except DynabrainError as exc:
@@ -85,6 +87,7 @@ def _set(value: dict[str, Any], world: World, builder: _Builder, path: Path):
 
 def _add(value: Any, world: World, builder: _Builder, path: Path):
     cfg: ModuleCfg = _module_cfg_type().model_validate(value)
+    builder.later_modules.add(cfg.name)
     if builder.make_module(cfg, path) is None:  # checked now; a fresh module is made at each firing
         return lambda w: None
     if cfg.name in world.modules:

@@ -48,13 +48,20 @@ class BodyProxy:
 
 
 class ModuleProxy:
-    """A module's ports and parameters by attribute (``servo.kp``, ``meter.apexes``)."""
+    """A module's ports and parameters by attribute (``servo.kp``, ``meter.apexes``); a port whose
+    name has dots reads as a chain (``core.floor_tilt.q``)."""
 
     def __init__(self, world: Any, name: str):
         self._world, self._name = world, name
 
     def __getattr__(self, key: str) -> Any:
-        return self._world.get(f"{self._name}.{key}")
+        name = f"{self._name}.{key}"
+        try:
+            return self._world.get(name)
+        except DynabrainError:
+            if any(s.startswith(name + ".") for s in self._world.signals()):
+                return ModuleProxy(self._world, name)
+            raise
 
 
 @dataclass
@@ -76,14 +83,21 @@ class Expectation:
             raise DynabrainError(f"expression {self.that!r} is not valid: {exc.msg}") from None
 
     def names(self) -> list[tuple[str, str | None]]:
-        """(name, attribute or None) pairs the expression reads."""
+        """(name, dotted attribute chain or None) pairs the expression reads: ``core.floor_tilt.q``
+        gives ("core", "floor_tilt.q")."""
         out: list[tuple[str, str | None]] = []
         tree = ast.parse(self.that, mode="eval")
         inner = set()
         for node in ast.walk(tree):
-            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
-                out.append((node.value.id, node.attr))
-                inner.add(id(node.value))
+            if isinstance(node, ast.Attribute) and id(node) not in inner:
+                chain, base = [], node
+                while isinstance(base, ast.Attribute):
+                    chain.append(base.attr)
+                    inner.add(id(base))
+                    base = base.value
+                if isinstance(base, ast.Name):
+                    out.append((base.id, ".".join(reversed(chain))))
+                    inner.add(id(base))
         for node in ast.walk(tree):
             if isinstance(node, ast.Name) and id(node) not in inner:
                 out.append((node.id, None))
@@ -127,8 +141,22 @@ def _fmt(value: Any) -> str:
     return f"{value:.6g}" if isinstance(value, float) else repr(value)
 
 
+class _Namespace(dict):
+    """The names an expression sees; a module added after the namespace was made is found too."""
+
+    def __init__(self, world: Any):
+        super().__init__(FUNCTIONS)
+        self._world = world
+
+    def __missing__(self, key: str) -> Any:
+        if key in self._world.modules:
+            self[key] = ModuleProxy(self._world, key)
+            return self[key]
+        raise KeyError(key)
+
+
 def namespace_for(world: Any) -> dict[str, Any]:
-    ns: dict[str, Any] = dict(FUNCTIONS)
+    ns = _Namespace(world)
     core = world.core
     if core is not None:
         for body in core.bodies():
@@ -138,18 +166,32 @@ def namespace_for(world: Any) -> dict[str, Any]:
     return ns
 
 
-def check_names(exp: Expectation, world: Any) -> list[str]:
-    """Problems with the names an expectation reads (unknown bodies, modules, ports, params)."""
+def check_names(exp: Expectation, world: Any, later: set[str] = frozenset()) -> list[str]:
+    """Problems with the names an expectation reads (unknown bodies, modules, ports, params).
+    ``later`` names modules the scenario's events add: their ports are checked when they exist."""
     ns = namespace_for(world)
     problems = []
     for name, attr in exp.names():
+        if name in later and name not in ns:
+            continue
         if name not in ns and name != "t":
-            problems.append(f"unknown name {name!r} in {exp.that!r}" + did_you_mean(name, [*ns, "t"]))
-        elif attr is not None and isinstance(ns.get(name), BodyProxy) and attr not in BODY_FIELDS:
+            problems.append(f"unknown name {name!r} in {exp.that!r}" + did_you_mean(name, [*ns, *later, "t"]))
+        elif attr is not None and isinstance(ns.get(name), BodyProxy) and attr.split(".")[0] not in BODY_FIELDS:
             problems.append(f"body {name!r} has no field {attr!r}" + did_you_mean(attr, BODY_FIELDS))
         elif attr is not None and isinstance(ns.get(name), ModuleProxy):
-            try:
-                world.get(f"{name}.{attr}")
-            except DynabrainError as exc:
-                problems.append(f"in {exp.that!r}: {exc}")
+            problem = _check_chain(world, name, attr.split("."))
+            if problem:
+                problems.append(f"in {exp.that!r}: {problem}")
     return problems
+
+
+def _check_chain(world: Any, module: str, parts: list[str]) -> str | None:
+    """None when some prefix of ``module.part1.part2...`` is a signal or parameter."""
+    first = None
+    for end in range(len(parts), 0, -1):
+        try:
+            world.get(".".join([module, *parts[:end]]))
+            return None
+        except DynabrainError as exc:
+            first = first or str(exc)
+    return first

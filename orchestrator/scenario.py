@@ -172,6 +172,8 @@ class _Builder:
         self.sc = scenario
         self.src = scenario.source
         self.problems: list[Problem] = []
+        self.later_modules: set[str] = set()
+        """Modules the scenario's events add (their names may be used before they exist)."""
 
     def report(self, path: Path, message: str) -> None:
         self.problems.append(self.src.problem(path, message))
@@ -272,7 +274,9 @@ class _Builder:
             self.report(("select",), str(exc))
 
     def _events(self, world: World) -> None:
-        for i, ev in enumerate(self.sc.model.events):
+        events = sorted(enumerate(self.sc.model.events), key=lambda item: parse_duration_ns(item[1].at)
+                        if _is_duration(item[1].at) else 0)
+        for i, ev in events:
             path: Path = ("events", i)
             try:
                 action, label = build_event(ev, world, self, path)
@@ -297,9 +301,17 @@ class _Builder:
             except DynabrainError as exc:
                 self.report(path, str(exc))
                 continue
-            for message in check_names(exp, world):
+            for message in check_names(exp, world, self.later_modules):
                 self.report((*path, "that"), message)
             self.sc.expectations.append(exp)
+
+
+def _is_duration(value: Any) -> bool:
+    try:
+        parse_duration_ns(value)
+    except DynabrainError:
+        return False
+    return True
 
 
 def _period(value: Any) -> int | None:

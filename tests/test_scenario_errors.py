@@ -137,3 +137,29 @@ def test_durations_are_exact_integers():
     assert parse_duration_ns("500Hz") == 2_000_000
     assert parse_duration_ns(0.003) == 3_000_000
     assert World(step="0.5ms").dt_ns == 500_000
+
+
+def test_expectations_may_name_modules_events_add_and_dotted_ports(tmp_path):
+    from dynabrain.orchestrator.runner import run_scenario
+
+    path = tmp_path / "late.yaml"
+    path.write_text("""
+name: late
+world: {step: 1ms, duration: 50ms, core: mujoco}
+scene:
+  - box: {name: arm, size: [0.05, 0.05, 0.3], mass: 0.2, pos: [0, 0, 1],
+          joint: {hinge: {name: pivot, axis: [0, 1, 0], anchor: [0, 0, 0.15]}}}
+events:
+  - {at: 10ms, add: {name: late, python: "dynabrain.modules.basic:Sine", params: {frequency: 5Hz}}}
+  - {at: 20ms, set: {late.amplitude: 2.0}}
+expect:
+  - {at: 50ms, that: "late.amplitude == 2.0 and abs(late.y - 2.0) < 1e-9", name: added module read}
+  - {at: 50ms, that: "core.pivot.q == 0 and core.pivot.qd == 0", name: dotted port read}
+""")
+    result = run_scenario(load_scenario(path))
+    assert [e.passed for e in result.expectations] == [True, True], [e.detail for e in result.expectations]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(path.read_text().replace("core.pivot.qd", "core.pivot.qq").replace("20ms, set", "5ms, set"))
+    found = problems_of(tmp_path, bad.read_text())
+    text = "\n".join(found)
+    assert "core.pivot.qq" in text and "late.amplitude" in text, text
