@@ -16,7 +16,7 @@ Until then nothing drives it: keep it frozen (out of the selection) and select i
 arrives; with ``targets: [floor]`` (the floor's object) the module checks that it is simulated.
 
 Ports. The slide's are those of the FMU twin ``fmus/moving_floor`` (same names, units, parameters
-and law; the twin has no tilt, and its envelope starts at 1 when enabled):
+and law; the twin has no tilt):
 
 ================  =====  ======  ==================================================================
 port              dir    unit    meaning

@@ -1,5 +1,6 @@
 /* moving_floor: x = e A sin(phi), phi' = 2 pi f, and the envelope e ramps linearly to 1 (enabled)
- * or 0 (disabled) in `ramp` seconds, so switching never jerks the floor. The tracking force is
+ * or 0 (disabled) in `ramp` seconds, so switching never jerks the floor. It starts at 0: a floor
+ * added to a running world eases in (as its Python twin, dynabrain.modules.floor, does). The tracking force is
  * kp (x - q) + kd (v - qd) + mass * a, with v and a the exact derivatives of x. */
 #include <math.h>
 
@@ -29,7 +30,7 @@ int model_init(ModelData *m) {
         return MODEL_ERROR;
     }
     m->phase = TWO_PI * m->frequency * m->time;
-    m->envelope = m->enabled ? 1.0 : 0.0;
+    m->envelope = 0.0;
     reference(m, 0.0);
     return MODEL_OK;
 }
