@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.core import SHAPES, BodySpec, SceneSpec
+from dynabrain.orchestrator.core import FLEX_SHAPES, SHAPES, BodySpec, SceneSpec
 from dynabrain.orchestrator.errors import DynabrainError
 from dynabrain.orchestrator.suggest import did_you_mean
 
@@ -121,6 +121,7 @@ def _spec_from_file(core: str, path: str, scenario_dir: str | None) -> mujoco.Mj
 
 def _spec_from_bodies(core: str, bodies: Sequence[BodySpec], bake: dict) -> mujoco.MjSpec:
     spec = mujoco.MjSpec()
+    spec.compiler.degree = False  # a SceneSpec is in radians (MjSpec, like MJCF, defaults to degrees)
     names = [b.name for b in bodies]
     by_name = {b.name: b for b in bodies}
     if len(by_name) != len(bodies):
@@ -149,6 +150,9 @@ def _where(b: BodySpec) -> str:
 
 
 def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel: tuple | None) -> mujoco.MjsBody:
+    if b.shape in FLEX_SHAPES:
+        raise fail(core, f"{_where(b)}a flexible body (shape {b.shape!r}) is not supported by the mujoco core; "
+                   "flexible bodies need core: exudyn")
     if b.shape not in _GEOMS:
         raise fail(core, f"{_where(b)}shape {b.shape!r} is not supported by the mujoco core "
                    f"(supported: {', '.join(SHAPES)})" + did_you_mean(b.shape, _GEOMS))

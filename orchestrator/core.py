@@ -15,6 +15,10 @@ Ports every core exposes (names are ``<object>.<quantity>``):
 Run-time parameters every core has: ``friction`` (sliding coefficient, all contacts),
 ``restitution`` (coefficient of restitution of contacts, 0..1, mapped so a measured bounce follows
 it), ``gravity`` (3-vector, m/s^2), ``substeps`` (engine steps per module step).
+
+Flexible bodies (`FLEX_SHAPES`): a ``cable`` is a rope of beam elements between two points, its ends
+free, pinned in space or pinned to bodies (`CableSpec`). A core that cannot simulate one refuses it
+when it is built, naming the feature and the core.
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ import numpy as np
 from .module import Capabilities, Module
 
 SHAPES = ("plane", "box", "sphere", "capsule", "cylinder")
+FLEX_SHAPES = ("cable",)
+"""Shapes of flexible bodies (not every core has them; see `CableSpec`)."""
 JOINT_KINDS = ("free", "hinge", "slide", "fixed")
 
 COLORS: dict[str, tuple[float, float, float, float]] = {
@@ -64,11 +70,32 @@ class JointSpec:
 
 
 @dataclass(frozen=True)
+class CableSpec:
+    """What a ``cable`` body has beyond a `BodySpec`: a rope, straight at t=0 from the body's ``pos``
+    (world frame) to ``end``, of ``segments`` beam elements.
+
+    ``axial_stiffness`` is EA (N: the force that would double its length), ``bending_stiffness`` EI
+    (N*m^2), ``damping`` a time constant (s): the axial and bending damping are ``damping`` times the
+    stiffnesses. ``attach`` says what holds each end (start, end): None for a free end, ``"world"``
+    to pin it where it is, or a body's name to pin it to that body at the point where it is at t=0.
+    The body's ``size`` is ``(radius,)`` and its ``mass`` the whole cable's.
+    """
+
+    end: tuple[float, float, float]
+    segments: int = 8
+    axial_stiffness: float = 1.0e4
+    bending_stiffness: float = 1.0e-3
+    damping: float = 0.0
+    attach: tuple[str | None, str | None] = (None, None)
+
+
+@dataclass(frozen=True)
 class BodySpec:
     """One primitive body of a scene.
 
     ``size`` by shape: box: full edge lengths (x, y, z); sphere: (radius,); capsule and cylinder:
-    (radius, length along the body z axis); plane: (half-x, half-y) or () for infinite.
+    (radius, length along the body z axis); plane: (half-x, half-y) or () for infinite; cable:
+    (radius,), with the rest in ``cable``.
     ``pos`` is in the parent's frame (the world's when ``parent`` is None); ``quat`` is w-x-y-z.
     A plane is always static; a top-level body without ``joint`` is free.
     """
@@ -85,6 +112,8 @@ class BodySpec:
     friction: float | None = None
     line: int | None = None
     """Line in the scenario file where the body is written (for errors)."""
+    cable: CableSpec | None = None
+    """The rope of a ``cable`` body (shape in `FLEX_SHAPES`); None for rigid shapes."""
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,11 @@ range, damping}}`` / ``{slide: {...}}`` (a hinge range is in degrees unless a un
 ``euler: [rx, ry, rz]`` (degrees, applied x then y then z) may replace ``quat``.
 ``- grid: {of: {box: {...}}, count: [nx, ny], spacing: [dx, dy]}`` repeats a shape on a grid; the
 copies are named ``<name>_<i>_<j>`` and placed at ``pos + (i*dx, j*dy, 0)``.
+``- cable: {name: rope, from: [0, 0, 2], to: [0, 0, 0.5], radius: 5mm, mass: 100g, segments: 8,
+stiffness: 2e4, bending: 1e-3, damping: 1ms, attach: [world, seat]}`` is a flexible rope (only some
+cores simulate it; see `dynabrain.orchestrator.core.CableSpec`): ``stiffness`` is EA in N,
+``bending`` EI in N*m^2, ``damping`` a time constant, ``attach`` what holds its start and end
+(null: free, ``world``: pinned where it is, or a body's name).
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .core import COLORS, JOINT_KINDS, SHAPES, BodySpec, JointSpec, SceneSpec
+from .core import COLORS, FLEX_SHAPES, JOINT_KINDS, SHAPES, BodySpec, CableSpec, JointSpec, SceneSpec
 from .errors import DynabrainError, Problem, UnitError
 from .suggest import did_you_mean
 from .units import parse_quantity
@@ -27,6 +32,9 @@ from .yamlsrc import Path, YamlSource
 _BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction")
 _JOINT_KEYS = ("name", "axis", "anchor", "range", "damping")
 _SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,)}
+_CABLE_KEYS = ("name", "from", "to", "radius", "mass", "segments", "stiffness", "bending", "damping", "attach",
+               "color", "friction")
+_ALL_SHAPES = (*SHAPES, *FLEX_SHAPES)
 
 
 def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple[SceneSpec, list[Problem]]:
@@ -48,12 +56,13 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
     bodies: list[BodySpec] = []
     names: set[str] = set()
     for shape, fields, path in _items(data or [], src, problems):
-        if shape not in SHAPES:
-            problems.append(src.problem(path, f"unknown shape {shape!r}" + did_you_mean(shape, SHAPES)
-                                        + f"; shapes: {', '.join(SHAPES)}"))
+        if shape not in _ALL_SHAPES:
+            problems.append(src.problem(path, f"unknown shape {shape!r}" + did_you_mean(shape, _ALL_SHAPES)
+                                        + f"; shapes: {', '.join(_ALL_SHAPES)}"))
             continue
         try:
-            body = _body(shape, fields or {}, src, (*path, shape), problems)
+            parse = _cable if shape in FLEX_SHAPES else _body
+            body = parse(shape, fields or {}, src, (*path, shape), problems)
         except (DynabrainError, ValueError, TypeError) as exc:
             problems.append(src.problem((*path, shape), str(exc)))
             continue
@@ -67,6 +76,11 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
         if body.parent is not None and body.parent not in names:
             problems.append(Problem(f"unknown parent {body.parent!r}" + did_you_mean(body.parent, names),
                                     src.file, body.line, f"scene[{i}].parent"))
+        for end in body.cable.attach if body.cable is not None else ():
+            if end not in (None, "world") and (end not in names or end == body.name):
+                problems.append(Problem(f"cable {body.name!r} is attached to {end!r}, which is not another body"
+                                        + did_you_mean(end, names) + "; use a body's name, world or null",
+                                        src.file, body.line, f"scene[{i}].attach"))
     return SceneSpec(bodies=tuple(bodies)), problems
 
 
@@ -141,6 +155,70 @@ def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: 
         friction=field("friction", lambda v: _positive(float(v))), line=src.line(path),
     )
     return body if len(problems) == before else None
+
+
+def _cable(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
+    """A ``cable`` item: a flexible rope from ``from`` to ``to`` (see `CableSpec`)."""
+    if not isinstance(f, dict):
+        raise DynabrainError(f"{shape} needs a mapping of fields ({', '.join(_CABLE_KEYS)})")
+    before = len(problems)
+    for key in f:
+        if key not in _CABLE_KEYS:
+            problems.append(src.problem((*path, key), f"unknown key {key!r}" + did_you_mean(key, _CABLE_KEYS)
+                                        + f"; valid keys: {', '.join(_CABLE_KEYS)}"))
+
+    def field(key: str, parse, default=None):
+        if key not in f:
+            if default is None:
+                problems.append(src.problem(path, f"a {shape} needs {key!r}"))
+            return default
+        try:
+            return parse(f[key])
+        except (DynabrainError, ValueError, TypeError) as exc:
+            problems.append(src.problem((*path, key), str(exc)))
+            return default
+
+    name = f.get("name")
+    if not isinstance(name, str) or not name:
+        problems.append(src.problem(path, f"a {shape} needs a name"))
+    start = field("from", lambda v: _vector(v, 3, "length"))
+    end = field("to", lambda v: _vector(v, 3, "length"))
+    if start is not None and end is not None and start == end:
+        problems.append(src.problem((*path, "to"), "a cable's ends must differ"))
+    cable = CableSpec(
+        end=end or (0.0, 0.0, 0.0),
+        segments=field("segments", _segments, 8),
+        axial_stiffness=field("stiffness", lambda v: _positive(parse_quantity(v, "force")), 1.0e4),
+        bending_stiffness=field("bending", lambda v: _positive(parse_quantity(v)), 1.0e-3),
+        damping=field("damping", lambda v: _not_negative(parse_quantity(v, "time")), 0.0),
+        attach=field("attach", _attach, (None, None)),
+    )
+    body = BodySpec(
+        name=name if isinstance(name, str) else "?", shape=shape,
+        size=(field("radius", lambda v: _positive(parse_quantity(v, "length")), 0.005),),
+        pos=start or (0.0, 0.0, 0.0), mass=field("mass", lambda v: _positive(parse_quantity(v, "mass")), 0.0) or None,
+        color=field("color", _color, COLORS["brown"]), friction=field("friction", lambda v: _positive(float(v)), 0.0)
+        or None, line=src.line(path), cable=cable,
+    )
+    return body if len(problems) == before else None
+
+
+def _segments(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 500:
+        raise UnitError(f"segments is a whole number from 1 to 500, got {value!r}")
+    return value
+
+
+def _attach(value: Any) -> tuple[str | None, str | None]:
+    if not isinstance(value, list) or len(value) != 2 or not all(v is None or isinstance(v, str) for v in value):
+        raise UnitError("attach is [start, end], each a body's name, world or null")
+    return (value[0], value[1])
+
+
+def _not_negative(x: float) -> float:
+    if x < 0:
+        raise UnitError(f"must not be negative, got {x}")
+    return x
 
 
 def _positive(x: float) -> float:

@@ -357,3 +357,12 @@ def test_mjcf_actuators_sensors_and_freezing_them(tmp_path):
     assert float(out["shoulder.q"]) == angle
     with pytest.raises(DynabrainError, match="not found"):
         make_core(model="missing.xml", scenario_dir=str(tmp_path))
+
+
+def test_hinge_range_is_in_radians():
+    core, inp, out = make_core(BodySpec("arm", "capsule", (0.02, 0.4), pos=(0, 0, 1.0), mass=0.5,
+                                        joint=JointSpec("hinge", axis=(0, 1, 0), anchor=(0, 0, 0.2),
+                                                        range=(-0.5, 0.5))))
+    inp["arm.force"][...] = 0.5
+    run(core, 500)
+    assert 0.45 < float(out["arm.q"]) < 0.52  # held at the 0.5 rad stop (a soft limit)
