@@ -1,0 +1,423 @@
+"""One World behind the bridge's calls, with no Zenoh in sight: views (named signals read as one binary
+frame), snapshots by handle, brain inputs held until the next step boundary, and one method per call.
+
+`WorldService.call(name, args)` runs a validated call and returns its result: plain JSON values, or
+``bytes`` (a state frame) for ``tick`` / ``read`` with a view. A call either completes or raises and
+changes nothing (the World's own guarantee; a failed tick is rolled back by the World).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import os
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dynabrain.orchestrator.errors import DynabrainError
+from dynabrain.orchestrator.history import WorldState
+from dynabrain.orchestrator.observers import WorldView
+from dynabrain.orchestrator.plugins import resolve_class
+from dynabrain.orchestrator.suggest import did_you_mean
+from dynabrain.orchestrator.units import parse_duration_ns
+from dynabrain.orchestrator.world import World, as_connection
+
+from . import frames
+from . import protocol as p
+
+DEFAULT_ALLOW_PYTHON = ("dynabrain.*",)
+"""Module classes a remote brain may add (``fnmatch`` patterns on ``package.module:Class``)."""
+STREAM_VIEW = 0
+
+
+@dataclass
+class View:
+    """Named signals, resolved against the bus layout of one structure."""
+
+    id: int
+    patterns: tuple[str, ...]
+    names: tuple[str, ...] = ()
+    shapes: tuple[tuple[int, ...], ...] = ()
+    units: tuple[str, ...] = ()
+    index: np.ndarray | None = None
+    bus: object = None
+    """The bus buffer the index was made for: a new buffer means a new structure."""
+
+    def describe(self) -> dict[str, Any]:
+        offsets, at = [], 0
+        for shape in self.shapes:
+            offsets.append(at)
+            at += int(np.prod(shape, dtype=np.int64))
+        return {"view": self.id, "size": at, "signals": [
+            {"name": n, "shape": list(s), "unit": u, "offset": o}
+            for n, s, u, o in zip(self.names, self.shapes, self.units, offsets, strict=True)]}
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A robot rig in the simulation: the servo module whose target input (``port``) motion commands set."""
+
+    robot: str
+    servo: str
+    joints: tuple[str, ...]
+    port: str = "target"
+
+    @property
+    def signal(self) -> str:
+        return f"{self.servo}.{self.port}"
+
+
+TARGET_PORTS = ("q_ref", "target")
+"""Input ports of a servo that take the joints' target angles, in the order they are looked for: the
+robot modules' `Servo` has ``q_ref``, the bridge's `PDServo` ``target``."""
+
+
+def find_rig(world: World, robot: str, servo: str) -> Rig:
+    """The rig of ``servo``: its target input and the joints in that input's order (from the input's
+    per-joint view ports ``<joint>.<port>``)."""
+    module = world.modules.get(servo)
+    if module is None:
+        raise DynabrainError(f"robot {robot!r}: no module {servo!r} in world {world.name!r}"
+                             + did_you_mean(servo, world.modules))
+    inputs = {port.name: port for port in module.inputs()}
+    port = next((name for name in TARGET_PORTS if name in inputs and len(inputs[name].shape) == 1), None)
+    if port is None:
+        raise DynabrainError(f"robot {robot!r}: module {servo!r} has no target input "
+                             f"({' or '.join(TARGET_PORTS)}, one value per joint)")
+    joints: list[str | None] = [None] * inputs[port].shape[0]
+    for p_ in inputs.values():
+        if p_.view_of is not None and p_.view_of[0] == port and p_.name.endswith(f".{port}"):
+            joints[p_.view_of[1]] = p_.name[:-len(port) - 1]
+    if None in joints:
+        raise DynabrainError(f"robot {robot!r}: cannot tell the joints of {servo}.{port} (no <joint>.{port} ports)")
+    return Rig(robot, servo, tuple(joints), port)
+
+
+class WorldService:
+    """The calls of one World. Thread-safe through the World's own lock."""
+
+    def __init__(self, world: World, *, instance: int, allow_python: Sequence[str] = DEFAULT_ALLOW_PYTHON,
+                 base_dir: str | None = None, max_snapshots: int = 64, max_views: int = 256,
+                 stream: Sequence[str] = ()):
+        self.world = world
+        self.instance = instance
+        self.allow_python = tuple(allow_python)
+        self.base_dir = base_dir
+        self.max_snapshots, self.max_views = max_snapshots, max_views
+        self._wv = WorldView(world)
+        self._views: dict[int, View] = {}
+        self._next_view = 1
+        self._snapshots: OrderedDict[int, WorldState] = OrderedDict()
+        self._next_snapshot = 0
+        self._pending: dict[str, Any] = {}
+        self._pending_lock = threading.Lock()
+        self.applying_inputs = False
+        self.input_errors: list[str] = []
+        self.on_input_error: Callable[[str], None] | None = None
+        self.rigs: dict[str, Rig] = {}
+        self._handlers = {name[3:]: getattr(self, name) for name in dir(self) if name.startswith("do_")}
+        if stream:
+            self._views[STREAM_VIEW] = self._resolve(View(STREAM_VIEW, tuple(stream)))
+
+    # -- dispatch -------------------------------------------------------------------------------------------
+    def call(self, name: str, args: Any) -> Any:
+        handler = self._handlers.get(name)
+        if handler is None:
+            raise DynabrainError(f"{name} is not available on world {self.world.name!r}")
+        return handler(args)
+
+    # -- stepping -------------------------------------------------------------------------------------------
+    def do_tick(self, a: p.TickArgs) -> Any:
+        w = self.world
+        with w.lock():
+            if a.view is not None:
+                self.get_view(a.view)  # refused before any tick when the view is unknown
+            for _ in range(a.n):
+                if self._pending:
+                    self.apply_pending()
+                w.tick()
+            return self.frame(self.get_view(a.view)) if a.view is not None else None
+
+    def do_backtick(self, a: p.BacktickArgs) -> None:
+        self.world.backtick(a.n)
+
+    # -- scene edits ----------------------------------------------------------------------------------------
+    def do_make(self, a: p.ObjectsArgs) -> Any:
+        self.world.make(a.objects)
+        return list(self.world.core.selection) if self.world.core is not None else []
+
+    def do_make_joint(self, a: p.MakeJointArgs) -> str:
+        return self.world.make_joint(a.a, a.b, a.name)
+
+    def do_remove_joint(self, a: p.NameArgs) -> None:
+        self.world.remove_joint(a.name)
+
+    def do_no_collision(self, a: p.ObjectsArgs) -> None:
+        self.world.no_collision(a.objects)
+
+    def do_place(self, a: p.PlaceArgs) -> None:
+        self.world.place(a.body, a.pos, a.quat)
+
+    # -- values ---------------------------------------------------------------------------------------------
+    def do_set(self, a: p.SetArgs) -> None:
+        value = a.value
+        if isinstance(value, list):
+            value = _numeric(value, a.name)
+        self.world.set(a.name, value)
+
+    def do_get(self, a: p.NameArgs) -> Any:
+        return p.plain(self.world.get(a.name))
+
+    # -- modules and wiring ---------------------------------------------------------------------------------
+    def do_add_module(self, a: p.AddModuleArgs) -> dict[str, Any]:
+        spec = a.module
+        module = self.make_module(spec)
+        try:
+            self.world.add_module(module, period=_period(spec.period),
+                                  connect=[as_connection(c) for c in spec.connect])
+        except BaseException:
+            module.close()
+            raise
+        return {"module": spec.name, "order": self.world.schedule_order()}
+
+    def make_module(self, spec: p.ModuleSpec) -> Any:
+        if (spec.python is None) == (spec.fmu is None):
+            raise DynabrainError(f"module {spec.name!r} needs exactly one of `python: package.module:Class` or `fmu:`")
+        if spec.fmu is not None:
+            return self._make_fmu(spec)
+        if not any(fnmatch.fnmatchcase(spec.python, pat) for pat in self.allow_python):
+            raise DynabrainError(f"module class {spec.python!r} is not allowed on this server (allowed: "
+                                 f"{', '.join(self.allow_python) or 'none'}; see `dynabrain serve --allow-python`)")
+        cls = resolve_class(spec.python)
+        try:
+            return cls(spec.name, targets=spec.targets, **spec.params)
+        except DynabrainError:
+            raise
+        except Exception as exc:
+            raise DynabrainError(f"module {spec.name!r} ({spec.python}) failed to construct: "
+                                 f"{type(exc).__name__}: {exc}") from None
+
+    def _make_fmu(self, spec: p.ModuleSpec) -> Any:
+        from dynabrain.orchestrator.fmu import make_fmu_module
+
+        path = os.path.normpath(spec.fmu)
+        if os.path.isabs(path) or path.startswith(".."):
+            raise DynabrainError(f"module {spec.name!r}: an FMU is named relative to the scenario's folder, "
+                                 f"got {spec.fmu!r}")
+        return make_fmu_module(spec.name, path, base_dir=self.base_dir or ".", params=spec.params,
+                               targets=spec.targets)
+
+    def do_remove_module(self, a: p.NameArgs) -> list[str]:
+        self.world.remove_module(a.name)
+        return self.world.schedule_order()
+
+    def do_connect(self, a: p.ConnectArgs) -> None:
+        self.world.connect(a.src, a.dst, delay=a.delay)
+
+    def do_disconnect(self, a: p.DisconnectArgs) -> None:
+        self.world.disconnect(a.dst)
+
+    # -- snapshots ------------------------------------------------------------------------------------------
+    def do_snapshot(self, a: p.NoArgs) -> dict[str, Any]:
+        state = self.world.snapshot()
+        sid = self._next_snapshot
+        self._next_snapshot += 1
+        self._snapshots[sid] = state
+        evicted = []
+        while len(self._snapshots) > self.max_snapshots:
+            evicted.append(self._snapshots.popitem(last=False)[0])
+        return {"snapshot": sid, "tick": state.tick, "evicted": evicted}
+
+    def do_restore(self, a: p.SnapshotRef) -> None:
+        self.world.restore(self._snapshot(a.snapshot))
+
+    def do_drop_snapshot(self, a: p.SnapshotRef) -> None:
+        self._snapshot(a.snapshot)
+        del self._snapshots[a.snapshot]
+
+    def _snapshot(self, sid: int) -> WorldState:
+        state = self._snapshots.get(sid)
+        if state is None:
+            raise DynabrainError(f"no snapshot {sid} on world {self.world.name!r} (dropped, evicted after "
+                                 f"{self.max_snapshots}, or made before the server restarted)")
+        return state
+
+    # -- views ----------------------------------------------------------------------------------------------
+    def do_view(self, a: p.ViewArgs) -> dict[str, Any]:
+        if len(self._views) >= self.max_views:
+            raise DynabrainError(f"too many views ({self.max_views}); drop some with drop_view")
+        with self.world.lock():
+            view = self._resolve(View(self._next_view, tuple(a.signals)))
+        self._views[view.id] = view
+        self._next_view += 1
+        return view.describe()
+
+    def do_read(self, a: p.ViewRef) -> bytes:
+        with self.world.lock():
+            return self.frame(self.get_view(a.view))
+
+    def do_drop_view(self, a: p.ViewRef) -> None:
+        if a.view == STREAM_VIEW:
+            raise DynabrainError("view 0 is the state stream's; it cannot be dropped")
+        if self._views.pop(a.view, None) is None:
+            raise DynabrainError(f"no view {a.view}")
+
+    def describe_view(self, vid: int) -> dict[str, Any]:
+        with self.world.lock():
+            return self.get_view(vid).describe()
+
+    def get_view(self, vid: int) -> View:
+        """A view, resolved again if the world's structure changed since (raises if a signal is gone)."""
+        view = self._views.get(vid)
+        if view is None:
+            known = ", ".join(str(k) for k in self._views if k >= 0) or "none"
+            raise DynabrainError(f"no view {vid} on world {self.world.name!r} (views: {known})")
+        if self._wv.bus().base is not view.bus:
+            self._resolve(view)  # the structure changed: find the signals again (raises if one is gone)
+        return view
+
+    def _resolve(self, view: View) -> View:
+        slots = self._wv.signal_slots()
+        names: list[str] = []
+        for pattern in view.patterns:
+            if any(ch in pattern for ch in "*?["):
+                matched = [n for n in fnmatch.filter(slots, pattern) if n not in names]
+                if not matched:
+                    raise DynabrainError(f"view {view.id}: pattern {pattern!r} matches no signal")
+                names += matched
+            else:
+                full = pattern if pattern in slots else self._core_name(pattern, slots)
+                if full is None:
+                    raise DynabrainError(f"view {view.id}: no signal {pattern!r}" + did_you_mean(pattern, slots))
+                names.append(full)
+        index = [np.arange(slots[n][0], slots[n][0] + int(np.prod(slots[n][1], dtype=np.int64))) for n in names]
+        view.names = tuple(names)
+        view.shapes = tuple(tuple(slots[n][1]) for n in names)
+        view.units = tuple(slots[n][2] for n in names)
+        view.index = np.concatenate(index).astype(np.intp) if index else np.zeros(0, dtype=np.intp)
+        view.bus = self._wv.bus().base
+        return view
+
+    def _core_name(self, name: str, slots: dict) -> str | None:
+        core = self.world.core
+        full = f"{core.name}.{name}" if core is not None else None
+        return full if full in slots else None
+
+    def frame(self, view: View) -> bytes:
+        """The view's values now, as a STATE frame (the caller holds the world lock)."""
+        values = self._wv.bus().take(view.index)
+        w = self.world
+        return frames.pack_header(frames.STATE, values.size, source=self.instance, seq=w.tick_count,
+                                  stamp=w.time_ns, aux=view.id) + values.astype("<f8", copy=False).tobytes()
+
+    def has_view(self, vid: int) -> bool:
+        return vid in self._views
+
+    def internal_view(self, names: Sequence[str]) -> int:
+        """A view for the bridge's own use (negative id, not listed to brains)."""
+        vid = -1 - sum(1 for k in self._views if k < 0)
+        with self.world.lock():
+            self._views[vid] = self._resolve(View(vid, tuple(names)))
+        return vid
+
+    def values(self, vid: int) -> np.ndarray:
+        """The values of a view now (the caller holds the world lock)."""
+        return self._wv.bus().take(self.get_view(vid).index)
+
+    @property
+    def has_pending(self) -> bool:
+        return bool(self._pending)
+
+    # -- inputs at step boundaries --------------------------------------------------------------------------
+    def submit(self, values: dict[str, Any]) -> None:
+        """Hold values for inputs until the next step boundary (latest value per name wins)."""
+        with self._pending_lock:
+            self._pending.update(values)
+
+    def apply_pending(self) -> None:
+        """Set every held input value (the caller holds the world lock, between two ticks). A value that
+        cannot be set is dropped and reported; the others are applied."""
+        with self._pending_lock:
+            pending, self._pending = self._pending, {}
+        self.applying_inputs = True
+        try:
+            for name, value in pending.items():
+                try:
+                    self.world.set(name, _numeric(value, name) if isinstance(value, list) else value)
+                except (DynabrainError, ValueError, TypeError) as exc:
+                    self._input_error(f"input {name!r} dropped: {exc}")
+        finally:
+            self.applying_inputs = False
+
+    def _input_error(self, message: str) -> None:
+        self.input_errors = [*self.input_errors[-31:], message]
+        if self.on_input_error is not None:
+            self.on_input_error(message)
+
+    # -- robot rigs -----------------------------------------------------------------------------------------
+    def add_rig(self, robot: str, servo: str) -> Rig:
+        rig = find_rig(self.world, robot, servo)
+        self.rigs[robot] = rig
+        return rig
+
+    def rig(self, robot: str) -> Rig:
+        rig = self.rigs.get(robot)
+        if rig is None:
+            raise DynabrainError(f"no robot {robot!r} on world {self.world.name!r}" + did_you_mean(robot, self.rigs)
+                                 + (f"; robots: {', '.join(self.rigs)}" if self.rigs else
+                                    "; serve with --robot NAME=SERVO to add one"))
+        return rig
+
+    def motion_inputs(self, rig: Rig, targets: list[float] | dict[str, float]) -> dict[str, Any]:
+        """The input values a motion command sets on the rig's servo (checked now)."""
+        if isinstance(targets, dict):
+            for joint in targets:
+                if joint not in rig.joints:
+                    raise DynabrainError(f"robot {rig.robot!r} has no joint {joint!r}"
+                                         + did_you_mean(joint, rig.joints))
+            return {f"{rig.servo}.{j}.{rig.port}": _finite(v, j) for j, v in targets.items()}
+        if len(targets) != len(rig.joints):
+            raise DynabrainError(f"robot {rig.robot!r} has {len(rig.joints)} joints ({', '.join(rig.joints)}), "
+                                 f"got {len(targets)} targets")
+        return {rig.signal: [_finite(v, rig.joints[i]) for i, v in enumerate(targets)]}
+
+    def status(self) -> dict[str, Any]:
+        out = self.world.status()
+        out["views"] = sum(1 for k in self._views if k >= 0)
+        out["snapshots"] = list(self._snapshots)
+        out["instance"] = self.instance
+        if STREAM_VIEW in self._views:
+            out["stream"] = self.describe_view(STREAM_VIEW)
+        out["robots"] = {r.robot: {"servo": r.servo, "input": r.signal, "joints": list(r.joints)}
+                         for r in self.rigs.values()}
+        return out
+
+    def do_status(self, a: p.NoArgs) -> dict[str, Any]:
+        return self.status()
+
+
+def _numeric(value: list[Any], name: str) -> np.ndarray:
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DynabrainError(f"{name}: expected numbers (or lists of numbers), got {value!r:.80}") from None
+
+
+def _finite(value: Any, joint: str) -> float:
+    x = float(value)
+    if not np.isfinite(x):
+        raise DynabrainError(f"target of joint {joint!r} is not finite: {value!r}")
+    return x
+
+
+def _period(value: Any) -> int | None:
+    """A period as the scenario writes it (``10ms``, ``100Hz``, or seconds) in ns."""
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        raise DynabrainError(f"period must be a duration (`10ms`) or seconds, got {value!r}")
+    return parse_duration_ns(value)

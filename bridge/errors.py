@@ -1,0 +1,62 @@
+"""Errors a brain sees when it talks to a world over the bridge.
+
+Three different situations, three different errors:
+
+- `ConnectError`: no session could be made (nothing listens there; or the endpoint refused us:
+  wrong credentials, TLS or access control);
+- `NoWorldError`: the session is up but no world answered (no server serves that world name, or it
+  went away: its liveliness token is gone); `CallTimeoutError`: the world is alive but did not answer in
+  time (it may still be running the call);
+- `WorldRefusedError` and its subclasses: the world answered and refused, with its reason. Nothing was done,
+  except for `ModuleFailedError` where the failed tick was rolled back by the world.
+"""
+
+from __future__ import annotations
+
+from dynabrain.orchestrator.errors import DynabrainError
+
+
+class BridgeError(DynabrainError):
+    """Root of the bridge's errors."""
+
+
+class ConnectError(BridgeError):
+    """No Zenoh session: nothing listens at the endpoint, or the endpoint refused the session."""
+
+
+class NoWorldError(BridgeError):
+    """No world answered: nothing serves this world name (or it went away)."""
+
+
+class CallTimeoutError(BridgeError):
+    """The world is alive but did not answer within the timeout."""
+
+
+class WorldRefusedError(BridgeError):
+    """The world refused the call; ``kind`` says why (see `protocol.ERROR_KINDS`)."""
+
+    def __init__(self, kind: str, message: str, call: str | None = None):
+        self.kind, self.call, self.reason = kind, call, message
+        super().__init__(f"world refused {call or 'the call'} ({kind}): {message}")
+
+
+class BadRequestError(WorldRefusedError):
+    """Malformed or oversized payload, unknown call, wrong argument types."""
+
+
+class WorldBusyError(WorldRefusedError):
+    """Another brain holds the world (or owns the fork)."""
+
+
+class ModuleFailedError(WorldRefusedError):
+    """A module failed during the call's ticks; the world rolled the failed tick back."""
+
+
+class WorldRestartedError(WorldRefusedError):
+    """The server restarted since this brain's last call: its world state is new. Call ``reattach()``."""
+
+
+ERRORS: dict[str, type[WorldRefusedError]] = {
+    "bad_request": BadRequestError, "unknown_call": BadRequestError, "busy": WorldBusyError,
+    "module_error": ModuleFailedError, "restarted": WorldRestartedError,
+}
