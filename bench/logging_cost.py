@@ -14,7 +14,9 @@
 
 Runs alternate (no log, log, no log, log, ...) and the best of each is kept. Printed: the wall time,
 the stepping thread's CPU time (what logging costs the simulation when the writer thread has a core of
-its own) and the writer thread's CPU time (compression and writes).
+its own) and the writer thread's CPU time (encoding, compression and writes). The load average is printed
+before and after: other processes on the 2 cores take the writer's second core, and then its time
+shows in the wall figures.
 Run: ``.venv/bin/python bench/logging_cost.py`` (the issue calls it ``bench/logging.py``; that name
 would hide the standard library's ``logging`` from every script run in ``bench/``)
 """
@@ -170,6 +172,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="dynabrain-bench-") as folder:
         print(f"1. step time with MCAP logging against none (best of {REPEATS}, fresh world each run)")
         paths = {name: step_cost(name, ticks, folder) for name, ticks in cases}
+        print(f"   load average after part 1: {os.getloadavg()[0]:.2f}")
         print("2. reading back")
         for name, ticks in cases:
             read_speed(name, paths[name], ticks)
@@ -177,6 +180,7 @@ def main() -> None:
         crash_loss(folder)
         print("4. writing messages")
         writer_speed(paths["two_cubes"], folder)
+    print(f"load average at the end: {os.getloadavg()[0]:.2f}")
 
 
 if __name__ == "__main__":

@@ -106,6 +106,10 @@ class MovingFloor(Module):
                 raise fail(self.name, "targets", f"the floor {frozen[0]!r} is frozen (not selected): select it "
                            "(make) before the moving floor is added, or it will not move")
 
+    def bind(self) -> None:
+        self._io = tuple(tuple(self.inp[k] for k in axis[6:8]) + tuple(self.out[k] for k in axis[8:]) for axis in _AXES)
+        self._law_of: dict[str, Any] | None = None
+
     def start(self, t_ns: int) -> None:
         p, t = self._param_values, t_ns * 1e-9
         self._state = (0.0, math.fmod(TWO_PI * p["frequency"] * t, TWO_PI),
@@ -113,33 +117,42 @@ class MovingFloor(Module):
         self._drive(0.0)
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        p, h = self._param_values, dt_ns * 1e-9
+        if self._param_values is not self._law_of:
+            self._take_law()
+        h = dt_ns * 1e-9
         envelope, phi, psi = self._state
         rate = self._envelope_rate(envelope)
         envelope = min(max(envelope + rate * h, 0.0), 1.0)
-        phi = math.fmod(phi + TWO_PI * p["frequency"] * h, TWO_PI)
-        psi = math.fmod(psi + TWO_PI * p["tilt_frequency"] * h, TWO_PI)
-        self._state = (envelope, phi, psi)
+        (_, omega, *_), (_, tilt_omega, *_) = self._axes
+        self._state = (envelope, math.fmod(phi + omega * h, TWO_PI), math.fmod(psi + tilt_omega * h, TWO_PI))
         self._drive(rate if self._envelope_rate(envelope) != 0.0 else 0.0)
 
+    def _take_law(self) -> None:
+        """Cache the law's constants for the current parameter dict (copy-on-write: a new dict is a
+        change): the envelope's target and speed, and per axis (amplitude, 2 pi f, kp, kd, mass)."""
+        p = self._law_of = self._param_values
+        self._target = 1.0 if p["enabled"] else 0.0
+        self._speed = 1.0 / p["ramp"] if p["ramp"] > 0 else math.inf
+        self._axes = tuple((p[amp], TWO_PI * p[freq], p[kp], p[kd], p[inertia])
+                           for _axis, amp, freq, kp, kd, inertia, *_ports in _AXES)
+
     def _envelope_rate(self, envelope: float) -> float:
-        p = self._param_values
-        target = 1.0 if p["enabled"] else 0.0
+        target = self._target
         if envelope == target:
             return 0.0
-        speed = 1.0 / p["ramp"] if p["ramp"] > 0 else math.inf
-        return speed if target > envelope else -speed
+        return self._speed if target > envelope else -self._speed
 
     def _drive(self, de: float) -> None:
         """References and drive forces from the state and the inputs (both axes)."""
-        p, inp, out = self._param_values, self.inp, self.out
-        e = self._state[0]
-        for (_axis, amp, freq, kp, kd, inertia, q, qd, ref, vel, drive), phase in zip(_AXES, self._state[1:],
-                                                                                      strict=True):
-            x, v, acc = wave(p[amp], TWO_PI * p[freq], phase, e, de)
-            out[ref][...] = x
-            out[vel][...] = v
-            out[drive][...] = p[kp] * (x - float(inp[q])) + p[kd] * (v - float(inp[qd])) + p[inertia] * acc
+        if self._param_values is not self._law_of:
+            self._take_law()
+        e, *phases = self._state
+        for (amp, omega, kp, kd, inertia), (q, qd, ref, vel, drive), phase in zip(self._axes, self._io, phases,
+                                                                                 strict=True):
+            x, v, acc = wave(amp, omega, phase, e, de)
+            ref[...] = x
+            vel[...] = v
+            drive[...] = kp * (x - float(q)) + kd * (v - float(qd)) + inertia * acc
 
     def get_state(self) -> tuple[float, float, float]:
         return self._state

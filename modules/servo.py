@@ -52,6 +52,8 @@ from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
 from .mjaccess import MujocoLink, fail
 from .motion import INTERPOLATIONS, Motion, MotionError, parse_motion, parse_pose
 
+_add, _subtract, _multiply, _minimum, _maximum = np.add, np.subtract, np.multiply, np.minimum, np.maximum
+
 
 class Servo(Module):
     """PD servos with torque limits for a set of joints, playing an angle-vector program."""
@@ -127,6 +129,7 @@ class Servo(Module):
         self._tau, self._ctrl, self._target = self.out["tau"], self.out["ctrl"], self.out["target"]
         n = len(self._joints)
         self._damp, self._cmd = np.zeros(n), np.zeros(n)
+        self._gains_of: dict[str, Any] | None = None
 
     def start(self, t_ns: int) -> None:
         self._t0 = t_ns
@@ -139,23 +142,33 @@ class Servo(Module):
         if self._pending is not None:
             self._begin(t_ns)
         pos, rate = self._motion.at(t_ns - self._t0)
-        p, damp = self._param_values, self._damp
-        lag = p["lag"]
+        if self._param_values is not self._gains_of:
+            self._take_gains()
+        kp, kd, high, low, lag = self._gains
+        damp, target = self._damp, self._target
         cmd = self._cmd if lag > 0 else self._tau  # without lag the command is the torque
-        np.add(pos, self._ref, out=self._target)
-        np.subtract(self._target, self._q, out=cmd)
-        cmd *= p["kp"]
-        np.subtract(rate, self._qd, out=damp)
-        damp *= p["kd"]
-        cmd += damp
-        limit = p["tau_max"]
-        np.minimum(cmd, limit, out=cmd)
-        np.maximum(cmd, -limit, out=cmd)
+        _add(pos, self._ref, out=target)
+        _subtract(target, self._q, out=cmd)
+        _multiply(cmd, kp, out=cmd)
+        _subtract(rate, self._qd, out=damp)
+        _multiply(damp, kd, out=damp)
+        _add(cmd, damp, out=cmd)
+        _minimum(cmd, high, out=cmd)
+        _maximum(cmd, low, out=cmd)
         if lag > 0:  # the motor follows the command: exact for a command held over the step
             cmd -= self._tau
             cmd *= -math.expm1(-dt_ns * 1e-9 / lag)
             self._tau += cmd
         self._ctrl[...] = self._tau
+
+    def _take_gains(self) -> None:
+        """Cache the gains of the current parameter dict (copy-on-write: a new dict is a change), as
+        vectors: a ufunc of two arrays costs less than one of an array and a Python float, and gives
+        the same bits."""
+        p = self._gains_of = self._param_values
+        n = len(self._joints)
+        self._gains = (np.full(n, p["kp"]), np.full(n, p["kd"]), np.full(n, p["tau_max"]), np.full(n, -p["tau_max"]),
+                       p["lag"])
 
     def _begin(self, t_ns: int) -> None:
         """Start the pending sequence now, from the current program target."""

@@ -134,7 +134,14 @@ class Structure:
     `SAVE_NONE` (cannot roll back), `SAVE_PARAMS` (no state of its own: only its parameters) or
     `SAVE_STATE`."""
     dispatch: tuple[tuple, ...] = ()
-    """The plan flattened for the hot loop: (name, step, period_ns, period_ticks, phase, copies)."""
+    """The plan flattened for the hot loop: (name, step, period_ns, period_ticks, phase, copies,
+    gather), ``copies`` and ``gather`` as `Structure.delayed` and `Structure.delayed_gather`."""
+    delayed_gather: Copies = ()
+    """Copies made on the bus array rather than on its memoryview: one pair of index arrays, when a
+    set of connections has too many separate runs (``delayed`` is then empty)."""
+    capture: tuple[tuple[Module | None, object], ...] = ()
+    """`savers` ready for the history's capture: (module, its bound ``get_state``) for `SAVE_STATE`,
+    (module, None) for `SAVE_PARAMS`, (None, None) for `SAVE_NONE`."""
 
     def record(self, name: str) -> ModuleRecord | None:
         for rec in self.records:
@@ -175,8 +182,12 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
     delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
     savers = tuple((rec.module, _save_kind(rec.module)) for rec in records)
     dispatch = tuple((st.record.name, st.record.module.step, st.record.period_ns, st.record.period_ticks,
-                      st.record.phase, st.copies) for st in plan)
-    return Structure(records, connections, layout, tuple(plan), _copies(layout, delayed), savers, dispatch)
+                      st.record.phase, *_split_gather(st.copies)) for st in plan)
+    delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
+    capture = tuple((None, None) if how == SAVE_NONE else (m, m.get_state if how == SAVE_STATE else None)
+                    for m, how in savers)
+    return Structure(records, connections, layout, tuple(plan), delayed_mv, savers, dispatch, delayed_gather,
+                     capture)
 
 
 SAVE_NONE, SAVE_PARAMS, SAVE_STATE = 0, 1, 2
@@ -190,9 +201,18 @@ def _save_kind(module: Module) -> int:
     return SAVE_STATE
 
 
-def _copies(layout: BusLayout, conns: Sequence[Connection], max_runs: int = 4) -> Copies:
-    """The copies for ``conns``: contiguous runs merged into slices (a slice copy costs a fraction of
-    a fancy-index copy), or one pair of index arrays when there are more than ``max_runs`` runs."""
+def _split_gather(copies: Copies) -> tuple[Copies, Copies]:
+    """(copies the world makes on the bus's memoryview, copies it makes on the array): index arrays
+    go to the array, single indices and slices to the memoryview (a copy there costs about half)."""
+    if any(isinstance(dst, np.ndarray) for dst, _src in copies):
+        return (), copies
+    return copies, ()
+
+
+def _copies(layout: BusLayout, conns: Sequence[Connection], max_runs: int = 8) -> Copies:
+    """The copies for ``conns``: contiguous runs merged into slices (a slice copy on the bus's
+    memoryview costs a fraction of a fancy-index copy), or one pair of index arrays when there are
+    more than ``max_runs`` runs."""
     runs: list[list[int]] = []  # [dst start, src start, size]
     for conn in sorted(conns, key=lambda c: layout.slots[c.dst].start):
         dst, src = layout.slots[conn.dst], layout.slots[conn.src]
@@ -201,7 +221,7 @@ def _copies(layout: BusLayout, conns: Sequence[Connection], max_runs: int = 4) -
             last[2] += dst.size
         else:
             runs.append([dst.start, src.start, dst.size])
-    if len(runs) <= max_runs:  # single values copied by index: cheaper still than a slice
+    if len(runs) <= max_runs:  # single values copied by index: cheaper still than a slice of one
         return tuple((d, s) if n == 1 else (slice(d, d + n), slice(s, s + n)) for d, s, n in runs)
     dst_idx = np.concatenate([np.arange(d, d + n) for d, _, n in runs])
     src_idx = np.concatenate([np.arange(s, s + n) for _, s, n in runs])

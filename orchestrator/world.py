@@ -31,7 +31,7 @@ from .errors import DynabrainError, ForkError, ModuleError, RollbackError, Wirin
 from .history import History, WorldState
 from .module import Module, SetupContext
 from .observers import Observer, WorldEvent, WorldView
-from .structure import SAVE_STATE, Connection, ModuleRecord, Structure, build_structure, split_signal
+from .structure import Connection, ModuleRecord, Structure, build_structure, split_signal
 from .suggest import did_you_mean
 from .units import NS_PER_S, format_duration, parse_duration_ns
 
@@ -52,6 +52,7 @@ class World:
         self._history = History(history)
         self._structure = build_structure((), ())
         self._buf = np.zeros(0)
+        self._mv = memoryview(self._buf)  # the bus again: the tick's copies are cheaper on it
         self._tick = 0
         self._dirty = True
         self._closed = False
@@ -160,16 +161,19 @@ class World:
                     current = f"event {label}"
                     action(self)
                 self._source = "api"
-            structure = self._structure
-            buf = self._buf
+            structure, mv = self._structure, self._mv
             for dst, src in structure.delayed:
-                buf[dst] = buf[src]
+                mv[dst] = mv[src]
+            if structure.delayed_gather:
+                _gather(self._buf, structure.delayed_gather)
             t_ns = n * self.dt_ns
-            for current, step, period_ns, period_ticks, phase, copies in structure.dispatch:  # noqa: B007 - `current` names a failing module below
+            for current, step, period_ns, period_ticks, phase, copies, gather in structure.dispatch:  # noqa: B007 - `current` names a failing module below
                 if period_ticks != 1 and (n - phase) % period_ticks:
                     continue
                 for dst, src in copies:
-                    buf[dst] = buf[src]
+                    mv[dst] = mv[src]
+                if gather:
+                    _gather(self._buf, gather)
                 step(t_ns, period_ns)
         except Exception as exc:  # roll back to the last good tick, then report
             self._source = "api"
@@ -204,8 +208,8 @@ class World:
     # -- state ----------------------------------------------------------------------------------------
     def _capture(self) -> WorldState:
         structure = self._structure
-        states = tuple([(m._param_values, m.get_state() if how == SAVE_STATE else None) if how else None
-                        for m, how in structure.savers])
+        states = tuple([(m._param_values, get()) if get is not None else
+                        (m._param_values, None) if m is not None else None for m, get in structure.capture])
         return WorldState(id(self), self._tick, structure, self._buf.copy(), states)
 
     def _apply(self, state: WorldState) -> None:
@@ -376,7 +380,7 @@ class World:
                 old = old_layout.slots.get(name)
                 if old is not None and old.size == slot.size and slot.port.view_of is None:
                     buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
-        self._buf = buf
+        self._buf, self._mv = buf, memoryview(buf)
         self._structure = structure
         for rec in structure.records:
             inp, out = {}, {}
@@ -699,6 +703,12 @@ def expand_names(names: Sequence[str], known: Sequence[str], kind: str, call: st
         elif name not in out:
             out.append(name)
     return out
+
+
+def _gather(buf: np.ndarray, copies: Sequence[tuple[Any, Any]]) -> None:
+    """Bus copies by index arrays (see `Structure.delayed_gather`)."""
+    for dst, src in copies:
+        buf[dst] = buf[src]
 
 
 def _names(objects: Iterable[str] | str) -> list[str]:
