@@ -61,6 +61,17 @@ CACHE_SIZE = 16
 DEFAULT_PERIOD_S = 0.002
 
 
+def _plain(array: np.ndarray) -> bool:
+    """A 1-D, contiguous float64 array (one a memoryview copies with memcpy)."""
+    return array.ndim == 1 and array.dtype == np.float64 and array.flags.c_contiguous
+
+
+def _move(dst: np.ndarray, di, src: np.ndarray, si) -> tuple:
+    if isinstance(di, slice) and isinstance(si, slice) and _plain(dst) and _plain(src):
+        return (memoryview(dst), di, memoryview(src), si)
+    return (dst, di, src, si)
+
+
 class _Structure:
     """One compiled structure: model, data, and its maps onto the core's fixed port layout. Maps are
     flat indices into C-ordered blocks: a slice where the rows are contiguous, else an index array."""
@@ -215,6 +226,7 @@ class MujocoCore(PhysicsCore):
         self._force, self._ctrl = np.zeros(nj), np.zeros(len(lay.actuators))
         self._groups: list[tuple[np.ndarray, np.ndarray]] = []
         self._copy_back: list[tuple[np.ndarray, np.ndarray]] = []
+        self._moves: tuple | None = None  # (structure, copies) of `_write_outputs`, made on first use
 
     def bind(self) -> None:
         self._unbind()
@@ -248,10 +260,11 @@ class MujocoCore(PhysicsCore):
 
     def step(self, t_ns: int, dt_ns: int) -> None:
         s = self._s
-        if s.njoint:
-            s.qfrc[s.dadr] = self._force[s.jrows]
-        if len(s.ctrl):
-            s.ctrl[:] = self._ctrl[s.act_src]
+        moves = self._moves
+        if moves is None or moves[0] is not s:
+            moves = self._moves = (s, *self._plan_moves(s))
+        for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls
+            dst[di] = src[si]
         mujoco.mj_step2(s.model, s.data)
         if self._nsub > 1:
             mujoco.mj_step(s.model, s.data, self._nsub - 1)
@@ -337,19 +350,33 @@ class MujocoCore(PhysicsCore):
     # -- outputs ------------------------------------------------------------------------------------------------
     def _write_outputs(self, s: _Structure) -> None:
         """Outputs that can change in a step: moving bodies, joints, sensors."""
-        self._pos[s.mv3] = s.xpos[s.mv_id3]
-        self._quat[s.mv4] = s.xquat[s.mv_id4]
-        self._lin[s.mv3] = s.sensordata[s.lin]
-        self._ang[s.mv3] = s.sensordata[s.ang]
-        if s.njoint:
-            self._q[s.jrows] = s.qpos[s.qadr]
-            self._qd[s.jrows] = s.qvel[s.dadr]
+        moves = self._moves
+        if moves is None or moves[0] is not s:
+            moves = self._moves = (s, *self._plan_moves(s))
+        for dst, di, src, si in moves[2]:
+            dst[di] = src[si]
         if s.nsens:
-            self._sd[s.sens_rows] = s.sensordata[s.sens_src]
             for block, idx in self._groups:
-                np.take(self._sd, idx, out=block)
+                block[...] = self._sd[idx]  # a fancy read and a plain write: ~4x cheaper than np.take(out=)
         for array, flat in self._copy_back:
             np.copyto(array, flat.reshape(array.shape))
+
+    def _plan_moves(self, s: _Structure) -> tuple[list[tuple], list[tuple]]:
+        """The copies `step` makes from the inputs and `_write_outputs` into the outputs, as
+        (dst, index, src, index). Where both indexes are slices the copy goes through memoryviews (a
+        memcpy, ~4x cheaper than a numpy slice copy)."""
+        ins = []
+        if s.njoint:
+            ins.append((s.qfrc, s.dadr, self._force, s.jrows))
+        if len(s.ctrl):
+            ins.append((s.ctrl, slice(None), self._ctrl, s.act_src))
+        pairs = [(self._pos, s.mv3, s.xpos, s.mv_id3), (self._quat, s.mv4, s.xquat, s.mv_id4),
+                 (self._lin, s.mv3, s.sensordata, s.lin), (self._ang, s.mv3, s.sensordata, s.ang)]
+        if s.njoint:
+            pairs += [(self._q, s.jrows, s.qpos, s.qadr), (self._qd, s.jrows, s.qvel, s.dadr)]
+        if s.nsens:
+            pairs.append((self._sd, s.sens_rows, s.sensordata, s.sens_src))
+        return [_move(*p) for p in ins], [_move(*p) for p in pairs]
 
     def _write_all(self) -> None:
         """Every output, with the constant ones of static and frozen bodies and joints."""
