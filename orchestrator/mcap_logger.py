@@ -16,12 +16,20 @@ then rewritten on close (`mcap_recover.rewrite`) so that those, too, move to ``/
 ``dynabrain run`` cannot roll back (except a failed tick, which discards nothing), so it uses no window.
 
 **Crash safety.** A kill loses the ticks still waiting (the ``window``, plus at most ``batch`` ticks or
-``flush_s / 2`` seconds of them) and the chunk being filled (at most ``chunk_bytes`` of messages, or
-``flush_s`` seconds of them); `dynabrain log recover` turns what is left into a valid file. With the
-defaults and no window (``dynabrain run``), a run at real time loses under half a second.
+``flush_s / 2`` seconds of them), the jobs handed to the writer's thread and not done yet (at most
+`mcap_write.QUEUE_DEPTH`, done within milliseconds unless the machine is overloaded) and the chunk
+being filled (at most ``chunk_bytes`` of messages, or ``flush_s`` seconds of them); `dynabrain log
+recover` turns what is left into a valid file. With the defaults and no window (``dynabrain run``), a
+run at real time loses under half a second.
 
-**Cost.** A tick costs a copy of the bus; a batch is encoded and written with a few numpy operations
-per channel (see `bench/logging.py`).
+**Cost.** The stepping thread copies the bus row into a preallocated block (rows of consecutive ticks
+of one layout and epoch: a row's tick is its block's first tick plus its index, so a tick makes no
+Python object) and, every ``batch`` ticks, hands the oldest rows to the writer's thread in one job.
+That thread encodes them (a few numpy operations per channel and batch: poses are taken from the
+bus's ``<core>.<body>.pos`` / ``.quat`` columns), compresses and writes; numpy and zstd release the
+GIL on large buffers, so it runs on a second core. Every writer call (schemas, channels, events)
+goes through that thread too, so the file holds the records in the order they were made. Figures:
+``bench/logging_cost.py``.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ import logging
 import os
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -60,32 +69,28 @@ from .mcap_write import McapWriter
 from .observers import Observer, WorldEvent, WorldView
 
 _log = logging.getLogger("dynabrain.mcap")
+BLOCK_BYTES = 2 << 20
+"""Bus rows a block holds at most (bytes; and at most ``batch`` rows)."""
 
 
-class _Tick:
-    """A tick waiting to be written: its bus row is row ``slot`` of its layout's `_Rows`."""
+class _Block:
+    """Bus rows of consecutive ticks of one layout and epoch, in preallocated memory: row ``i`` is tick
+    ``first + i``. Rows ``[0, sent)`` are handed to the writer; rows from ``cut`` on were discarded by a
+    rollback. A block takes no more rows once ``sealed``; the writer hands it back to its pool after
+    writing its last rows (``pool``)."""
 
-    __slots__ = ("codec", "discarded", "epoch", "extra", "scene", "slot", "tick")
+    __slots__ = ("codec", "cut", "epoch", "extra", "first", "n", "pool", "rows", "scenes", "sealed", "sent")
 
-    def __init__(self, tick: int, epoch: int, codec: BusCodec, slot: int, extra: np.ndarray | None,
-                 scene: bytes | None):
-        self.tick, self.epoch, self.codec, self.slot, self.extra, self.scene = tick, epoch, codec, slot, extra, scene
-        self.discarded = False
+    def __init__(self, codec: BusCodec, capacity: int, extra: int, pool: deque):
+        self.codec, self.pool = codec, pool
+        self.rows = np.empty((capacity, codec.size))
+        self.extra = np.empty((capacity, extra)) if extra else None
+        self.scenes: list[tuple[int, bytes]] = []
 
-
-class _Rows:
-    """The bus rows of one layout waiting to be written, in a preallocated ring used in order, so a
-    batch of consecutive ticks is a slice of it (no copies to gather them)."""
-
-    def __init__(self, capacity: int, size: int):
-        self.rows = np.empty((capacity, size))
-        self.next = 0
-
-    def put(self, bus: np.ndarray) -> int:
-        slot = self.next
-        np.copyto(self.rows[slot], bus)
-        self.next = (slot + 1) % len(self.rows)
-        return slot
+    def start(self, first: int, epoch: int) -> _Block:
+        self.first, self.epoch, self.n, self.sent, self.cut, self.sealed = first, epoch, 0, 0, len(self.rows), False
+        self.scenes = []
+        return self
 
 
 class McapLogger(Observer):
@@ -110,12 +115,14 @@ class McapLogger(Observer):
         self._max_wait = flush_s / 2
         self._drained_at = time.monotonic()
         self._writer: McapWriter | None = None
-        self._pending: deque[_Tick] = deque()
+        self._pending: deque[_Block] = deque()  # blocks with rows not handed to the writer yet, oldest first
+        self._waiting = 0  # rows of ``_pending`` not handed to the writer
+        self._block: _Block | None = None  # the block taking rows (None: the next row starts one)
+        self._expect = -1  # the tick whose row the block takes next
+        self._pools: dict[int, deque[_Block]] = {}
         self._numbers = FieldNumbers()
         self._codecs: dict[tuple, BusCodec] = {}
-        self._rows: dict[int, _Rows] = {}
-        self._capacity = window + batch + 8
-        self._channels: dict[tuple[str, int], int] = {}
+        self._channels: dict[tuple[str, int], int] = {}  # used on the writer's thread only
         self._pose_index: dict[int, tuple[np.ndarray, list[str]]] = {}
         self._codec: BusCodec | None = None
         self._missing: list[str] = []
@@ -148,7 +155,7 @@ class McapLogger(Observer):
                 settings = {"decimate": self.decimate, "scene_every": self.scene_every, "window": self.window,
                             "batch": self.batch, **self._writer_args}
                 self._writer.add_metadata(METADATA_NAME, run_metadata(world, scenario, settings))
-                self._channel(TOPIC_EVENTS, lambda: self._json_channel(TOPIC_EVENTS))
+                self._run(lambda: self._channel(TOPIC_EVENTS, lambda: self._json_channel(TOPIC_EVENTS)))
                 if view.core is not None:
                     self._scene = SceneDrawing(view.core)
                     self._poses = PoseCodec(view.core.bodies())
@@ -162,15 +169,21 @@ class McapLogger(Observer):
 
     # -- observer hooks -------------------------------------------------------------------------------
     def on_tick(self, view: WorldView) -> None:
-        if self.closed:
-            return
-        if self._dirty:
-            self._refresh_layout(view)
-        bus = view.bus()
-        if bus.size != self._codec.size:
-            self._refresh_layout(view)
-        self._push(view, bus)
-        waiting = len(self._pending) - self.window
+        """The hot path: copy the bus row into the block; everything else happens per batch."""
+        bus, tick, block = view.bus(), view.tick, self._block
+        if (self._dirty or block is None or tick != self._expect or block.n == len(block.rows)
+                or tick >= self._next_scene or bus.size != block.rows.shape[1] or self._missing):
+            if self.closed:
+                return
+            if self._dirty or bus.size != self._codec.size:
+                self._refresh_layout(view)
+            self._push(view, bus)
+        else:
+            block.rows[block.n] = bus
+            block.n += 1
+            self._expect = tick + 1
+            self._waiting += 1
+        waiting = self._waiting - self.window
         if waiting >= self.batch or (waiting > 0 and time.monotonic() - self._drained_at >= self._max_wait):
             self._drain(waiting)
 
@@ -195,16 +208,12 @@ class McapLogger(Observer):
         cause = "restore" if self._restoring else "failed_tick" if self._failing == from_tick == to else "backtick"
         self._restoring, self._failing = False, None
         last = to - 1 if cause == "restore" else to  # a restore replaces tick `to` itself
-        for item in reversed(self._pending):
-            if item.discarded:
-                continue
-            if item.tick <= last:
-                break
-            item.discarded = True
+        self._discard_after(last)
         if self._written_max > last:
             self._compact = True
         self._written_max = min(self._written_max, last)
         self._epoch += 1
+        self._seal()
         detail = {"from_tick": from_tick, "to_tick": to, "cause": cause, "epoch": self._epoch}
         if cause == "restore" and self._restored_snapshot:
             detail["snapshot"] = self._restored_snapshot
@@ -244,8 +253,10 @@ class McapLogger(Observer):
             self.closed = True
             with contextlib.suppress(ValueError):  # not observing any more (the caller took it off)
                 self._world.unobserve(self)
-            self._drain(len(self._pending))
-            self._writer.finish()
+            try:
+                self._drain(self._waiting)
+            finally:
+                self._writer.finish()
         if self._compact:
             from .mcap_recover import rewrite
 
@@ -260,23 +271,65 @@ class McapLogger(Observer):
                 "bytes": w.bytes_written if w else 0, "epoch": self._epoch,
                 "writer_cpu_s": w.thread_cpu_s if w else 0.0}
 
-    # -- internals ------------------------------------------------------------------------------------
+    # -- the stepping thread: rows into blocks ----------------------------------------------------------
     def _push(self, view: WorldView, bus: np.ndarray) -> None:
+        """Any row the hot path does not take: a new block, the poses the bus lacks, the scene."""
         tick = view.tick
-        extra = None
+        block = self._block
+        if block is None or tick != self._expect or block.n == len(block.rows) or block.codec is not self._codec:
+            block = self._start_block(tick)
+        row = block.n
+        block.rows[row] = bus
         if self._missing and tick % self.decimate == 0:
             core = view.core
-            extra = np.concatenate([np.concatenate(core.body_pose(b)) for b in self._missing])
-        scene = None
-        if self._scene is not None and tick >= self._next_scene:
-            scene = self._scene.encode(tick * self._dt)
+            block.extra[row] = np.concatenate([np.concatenate(core.body_pose(b)) for b in self._missing])
+        if tick >= self._next_scene:
+            if self._scene is not None:
+                block.scenes.append((row, self._scene.encode(tick * self._dt)))
             self._next_scene = tick + self.scene_every
-        if len(self._pending) >= self._capacity:  # a ring is full (a restore pushed one more): write first
-            self._drain(len(self._pending) - self.window)
-        rows = self._rows.get(self._codec.key)
-        if rows is None:
-            rows = self._rows[self._codec.key] = _Rows(self._capacity, self._codec.size)
-        self._pending.append(_Tick(tick, self._epoch, self._codec, rows.put(bus), extra, scene))
+        block.n += 1
+        self._expect = tick + 1
+        self._waiting += 1
+
+    def _start_block(self, tick: int) -> _Block:
+        self._seal()
+        codec = self._codec
+        pool = self._pools.get(codec.key)
+        if pool is None:
+            pool = self._pools[codec.key] = deque()
+        try:
+            block = pool.popleft()
+        except IndexError:
+            capacity = max(1, min(self.batch, BLOCK_BYTES // (8 * codec.size)))
+            block = _Block(codec, capacity, 7 * len(self._missing), pool)
+        self._block = block.start(tick, self._epoch)
+        self._pending.append(block)
+        return block
+
+    def _seal(self) -> None:
+        """The block taking rows takes no more; one already written goes back (after the writer's jobs)."""
+        block, self._block = self._block, None
+        if block is None:
+            return
+        block.sealed = True
+        if block.sent == block.n:  # nothing of it waits (every older block was handed over before it)
+            self._pending.remove(block)
+            if block.n == 0:
+                block.pool.append(block)
+            else:
+                self._run(lambda: block.pool.append(block))
+
+    def _discard_after(self, last: int) -> None:
+        """Mark the waiting rows of ticks after ``last`` discarded (newest first, as the rule says)."""
+        for block in reversed(self._pending):
+            lo, hi = block.sent, min(block.cut, block.n)
+            if lo >= hi:
+                continue
+            if block.first + hi - 1 <= last:
+                break
+            block.cut = max(lo, last + 1 - block.first)
+            if block.cut > lo:
+                break
 
     def _refresh_layout(self, view: WorldView) -> None:
         slots = view.signal_slots()
@@ -302,25 +355,43 @@ class McapLogger(Observer):
         return pose_columns(view.core.name, self._poses.bodies, codec)
 
     def _drain(self, n: int) -> None:
+        """Hand the ``n`` oldest waiting rows to the writer's thread, in one job."""
         self._drained_at = time.monotonic()
-        group: list[_Tick] = []
-        for _ in range(min(n, len(self._pending))):
-            item = self._pending.popleft()
-            if group and (item.codec is not group[0].codec or item.discarded != group[0].discarded
-                          or item.slot != group[-1].slot + 1):
-                self._write(group)
-                group = []
-            group.append(item)
-        if group:
-            self._write(group)
+        parts = []
+        while n > 0 and self._pending:
+            block = self._pending[0]
+            a = block.sent
+            b = min(block.n, a + n)
+            if b > a:
+                for lo, hi, discarded in ((a, min(b, block.cut), False), (max(a, block.cut), b, True)):
+                    if hi > lo:
+                        parts.append((block, lo, hi, discarded))
+                        if not discarded:
+                            self._written_max = max(self._written_max, block.first + hi - 1)
+                block.sent = b
+                n -= b - a
+                self._waiting -= b - a
+            if block.sent < block.n or not block.sealed:
+                break
+            self._pending.popleft()
+            parts.append((block, 0, 0, None))  # its last rows are written: back to its pool
+        if parts:
+            self._run(lambda: self._write_parts(parts))
 
-    def _write(self, group: list[_Tick]) -> None:
-        """Encode a group of consecutive ticks (one layout, consecutive ring rows) straight into the chunk."""
-        codec, discarded = group[0].codec, group[0].discarded
-        prefix = DISCARDED if discarded else ""
-        ticks = np.array([it.tick for it in group], dtype=np.int64)
-        epochs = np.array([it.epoch for it in group], dtype=np.int64)
-        rows = self._rows[codec.key].rows[group[0].slot:group[0].slot + len(group)]
+    # -- the writer's thread: encoding ------------------------------------------------------------------
+    def _write_parts(self, parts: list[tuple[_Block, int, int, bool | None]]) -> None:
+        for block, lo, hi, discarded in parts:
+            if discarded is None:
+                block.pool.append(block)
+            else:
+                self._write(block, lo, hi, discarded)
+
+    def _write(self, block: _Block, lo: int, hi: int, discarded: bool) -> None:
+        """Encode rows ``lo:hi`` of a block (one layout, epoch and fate) straight into the chunk."""
+        codec, prefix = block.codec, DISCARDED if discarded else ""
+        ticks = np.arange(block.first + lo, block.first + hi, dtype=np.int64)
+        epochs = np.full(hi - lo, block.epoch, dtype=np.int64)
+        rows = block.rows[lo:hi]
         t_ns = ticks * self._dt
         w, dt = self._writer, self._dt
 
@@ -328,8 +399,6 @@ class McapLogger(Observer):
             codec.encode(rows[part], ticks[part], epochs[part], dt, out=out)
 
         w.add_encoded(self._bus_channel(codec, prefix), t_ns, epochs, codec.length, bus)
-        if not discarded:
-            self._written_max = max(self._written_max, int(ticks[-1]))
         if self._poses is None:
             return
         due = np.flatnonzero(ticks % self.decimate == 0)
@@ -337,7 +406,7 @@ class McapLogger(Observer):
             cols, missing = self._pose_index[codec.key]
             ext = rows if len(due) == len(rows) else rows[due]
             if missing:
-                ext = np.concatenate([ext, np.stack([group[i].extra for i in due])], axis=1)
+                ext = np.concatenate([ext, block.extra[lo:hi][due]], axis=1)
             pose, times = ext[:, cols], t_ns[due]
 
             def poses(out: np.ndarray, part: slice) -> None:
@@ -345,18 +414,23 @@ class McapLogger(Observer):
 
             w.add_encoded(self._proto_channel(prefix + TOPIC_TF, FrameTransforms), times, epochs[due],
                           self._poses.length, poses)
-        for item in group:
-            if item.scene is not None:
-                w.add_message(self._proto_channel(prefix + TOPIC_SCENE, SceneUpdate), item.tick * self._dt,
-                              item.scene, item.epoch)
+        for row, scene in block.scenes:
+            if lo <= row < hi:
+                w.add_message(self._proto_channel(prefix + TOPIC_SCENE, SceneUpdate), (block.first + row) * dt,
+                              scene, block.epoch)
 
     def _event(self, kind: str, tick: int, detail: dict, source: str) -> None:
         self._seq += 1
         body = {"seq": self._seq, "tick": tick, "time": tick * self._dt / 1e9, "epoch": self._epoch, "kind": kind,
                 "source": source, "detail": detail}
-        self._writer.add_message(self._channels[(TOPIC_EVENTS, 0)], tick * self._dt, event_bytes(body), self._epoch)
+        data, epoch, w = event_bytes(body), self._epoch, self._writer
+        self._run(lambda: w.add_message(self._channels[(TOPIC_EVENTS, 0)], tick * self._dt, data, epoch))
 
-    # -- channels -------------------------------------------------------------------------------------
+    def _run(self, job: Callable[[], None]) -> None:
+        """Every writer call goes through the writer's thread, in order (see the module docstring)."""
+        self._writer.call(job)
+
+    # -- channels (on the writer's thread) ----------------------------------------------------------------
     def _channel(self, topic: str, make, key: int = 0) -> int:
         cid = self._channels.get((topic, key))
         if cid is None:

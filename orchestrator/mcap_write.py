@@ -8,12 +8,14 @@ package in the tests, as an independent check.
 
 Finished chunks are compressed (zstd, level 1 by default: about 650 MB/s for a 2.5 ratio on bus data)
 and written by a thread of the writer's own, so compression overlaps the simulation on a second core.
+A caller can hand that thread whole jobs (`call`: encode a batch and add it, for instance): every
+writer call made inside a job runs there, in order, and its chunks are compressed there too.
 
 Crash safety. Bytes go to the file with ``os.write`` (no user-space buffer), one chunk at a time, so a
 process killed with SIGKILL leaves every chunk that was written. A chunk is finished when it holds
 ``chunk_bytes`` of records or when its first record is ``flush_s`` seconds old (checked whenever a
 record is added), so a kill loses the chunk being filled and the finished ones still waiting for the
-thread (at most ``QUEUE_DEPTH``; in practice they are written within milliseconds). Schemas and
+thread (at most ``QUEUE_DEPTH`` jobs; in practice they are written within milliseconds). Schemas and
 channels are written into the chunk where they are registered (and repeated in the summary), so the
 complete chunks of a file can be decoded in order on their own.
 """
@@ -38,7 +40,8 @@ OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 
 OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_METADATA = 0x07, 0x08, 0x0B, 0x0C
 OP_METADATA_INDEX, OP_SUMMARY_OFFSET, OP_DATA_END = 0x0D, 0x0E, 0x0F
 QUEUE_DEPTH = 2
-"""Finished chunks waiting for the writing thread; a producer faster than the disk waits beyond this."""
+"""Jobs (finished chunks, `McapWriter.call` jobs) waiting for the writing thread; a producer faster than
+the thread waits beyond this."""
 MESSAGE_HEADER = struct.Struct("<BQHIQQ")
 """opcode, record length, channel id, sequence, log time, publish time (then the data)."""
 
@@ -97,8 +100,8 @@ class _Chunk:
 
 
 class McapWriter:
-    """Writes one MCAP file. One thread adds records (the world's stepping thread); the writer's own
-    thread compresses and writes chunks."""
+    """Writes one MCAP file. One thread adds records (the world's stepping thread), directly or in jobs
+    handed to the writer's own thread (`call`); the writer's thread compresses and writes chunks."""
 
     def __init__(self, path: str | os.PathLike[str], *, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
                  level: int = 1, profile: str = "", library: str = "dynabrain"):
@@ -130,6 +133,12 @@ class McapWriter:
         self._thread = threading.Thread(target=self._work, name=f"dynabrain-mcap-{os.path.basename(self.path)}",
                                         daemon=True)
         self._thread.start()
+
+    def call(self, job: Callable[[], None]) -> None:
+        """Run ``job`` on the writing thread after everything handed to it before. Writer calls made
+        inside it run there too (a chunk it finishes is compressed there). A job that raises stops the
+        writer: the error comes back as a `DynabrainError` from the next call, `call` or `finish`."""
+        self._submit(job)
 
     # -- registration ---------------------------------------------------------------------------------
     def add_schema(self, name: str, encoding: str, data: bytes, schema_id: int | None = None) -> int:
@@ -286,6 +295,9 @@ class McapWriter:
 
     # -- the writing thread ---------------------------------------------------------------------------
     def _submit(self, job: Callable[[], None]) -> None:
+        if threading.get_ident() == self._thread.ident:  # inside a job: now, in order
+            job()
+            return
         self._check()
         self._jobs.put(job)
 
@@ -314,6 +326,8 @@ class McapWriter:
     # -- the end --------------------------------------------------------------------------------------
     def finish(self) -> None:
         """Write the last chunk, the summary (schemas, channels, statistics, indexes) and the footer."""
+        self._jobs.join()  # jobs handed over with `call` may still add messages
+        self._check()
         self.flush()
         self._jobs.join()
         self._check()

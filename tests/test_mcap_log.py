@@ -15,6 +15,7 @@ from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
 from dynabrain.modules.basic import Noise, Sine
+from dynabrain.orchestrator import mcap_logger
 from dynabrain.orchestrator.errors import DynabrainError
 from dynabrain.orchestrator.mcap_logger import McapLogger
 from dynabrain.orchestrator.mcap_read import final_mask, iter_bus, read_index
@@ -236,3 +237,43 @@ def test_a_log_that_cannot_be_written_is_a_clear_error(tmp_path):
         record(tmp_path / "nowhere")
     with pytest.raises(DynabrainError, match="decimate must be an integer >= 1"):
         McapLogger(tmp_path / "x.mcap", decimate=0)
+
+
+def test_small_blocks_and_uneven_windows_keep_every_tick_in_order(tmp_path, monkeypatch):
+    # blocks of 3 rows, drains of 5 rows 7 ticks behind: drains and rollbacks cut blocks anywhere
+    monkeypatch.setattr(mcap_logger, "BLOCK_BYTES", 3 * 8 * 39)
+    world, path = record(tmp_path, window=7, batch=5, decimate=2)
+    seen = {}
+
+    def tick(n):
+        for _ in range(n):
+            world.tick()
+            seen[world.tick_count] = world.snapshot().bus
+
+    tick(23)
+    world.backtick(4)   # within the window
+    tick(9)             # to 28
+    world.backtick(13)  # to 15: reaches written ticks
+    tick(11)            # to 26
+    world.close()
+    index = read_index(path)
+    rows = [(r.topic, r.epoch, r.tick, r.row) for r in iter_bus(path, index)]
+    main = [(e, t) for topic, e, t, _r in rows if topic == "/bus"]
+    assert main == [(0, t) for t in range(16)] + [(2, t) for t in range(16, 27)]
+    assert all(r.tobytes() == seen[t].tobytes() for topic, _e, t, r in rows if topic == "/bus" and t > 15)
+    discarded = sorted((e, t) for topic, e, t, _r in rows if topic == "/discarded/bus")
+    assert discarded == [(0, t) for t in range(16, 24)] + [(1, t) for t in range(20, 29)]
+    assert [m[0] // 2_000_000 for m in messages(path, "/tf")] == list(range(0, 27, 2))
+
+
+def test_a_failure_on_the_writers_thread_reaches_the_caller(tmp_path, monkeypatch, caplog):
+    world, _path = record(tmp_path, window=0, batch=4)
+
+    def broken(*_args):
+        raise OSError("disk on fire")
+
+    monkeypatch.setattr(mcap_logger.McapLogger, "_write_parts", broken)
+    with pytest.raises(DynabrainError, match=r"writing the log .*OSError: disk on fire"):
+        world.tick(40)  # the batch fails on the writer's thread; the next hand-over reports it
+    world.close()       # the world keeps closing; the log says why the file is incomplete
+    assert "closing the MCAP log" in caplog.text and "disk on fire" in caplog.text
