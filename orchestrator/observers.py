@@ -59,10 +59,9 @@ class WorldView:
         return self._world.signals()
 
     def bus(self) -> np.ndarray:
-        """The whole bus as a read-only array (layout from `signal_slots`)."""
-        view = self._world._buf.view()
-        view.setflags(write=False)
-        return view
+        """The whole bus as a read-only array (layout from `signal_slots`); the same array object
+        until the world's structure changes."""
+        return self._world._ro
 
     def signal_slots(self) -> dict[str, tuple[int, tuple[int, ...], str]]:
         """signal -> (offset in `bus`, shape, unit)."""

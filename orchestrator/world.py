@@ -53,6 +53,7 @@ class World:
         self._structure = build_structure((), ())
         self._buf = np.zeros(0)
         self._mv = memoryview(self._buf)  # the bus again: the tick's copies are cheaper on it
+        self._ro = _read_only(self._buf)  # and read-only, for observers
         self._tick = 0
         self._dirty = True
         self._closed = False
@@ -380,7 +381,7 @@ class World:
                 old = old_layout.slots.get(name)
                 if old is not None and old.size == slot.size and slot.port.view_of is None:
                     buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
-        self._buf, self._mv = buf, memoryview(buf)
+        self._buf, self._mv, self._ro = buf, memoryview(buf), _read_only(buf)
         self._structure = structure
         for rec in structure.records:
             inp, out = {}, {}
@@ -677,6 +678,12 @@ def module_spec(module: Module, period_ns: int, connections: Sequence[Connection
     if connections:
         spec["connect"] = [[c.src, c.dst, {"delay": True}] if c.delay else [c.src, c.dst] for c in connections]
     return spec
+
+
+def _read_only(buf: np.ndarray) -> np.ndarray:
+    view = buf.view()
+    view.setflags(write=False)
+    return view
 
 
 def as_connection(value: Connection | Sequence[Any]) -> Connection:
