@@ -164,10 +164,7 @@ class WorldService:
 
     # -- values ---------------------------------------------------------------------------------------------
     def do_set(self, a: p.SetArgs) -> None:
-        value = a.value
-        if isinstance(value, list):
-            value = _numeric(value, a.name)
-        self.world.set(a.name, value)
+        self.world.set(a.name, _value(a.value, a.name))
 
     def do_get(self, a: p.NameArgs) -> Any:
         return p.plain(self.world.get(a.name))
@@ -347,7 +344,7 @@ class WorldService:
         try:
             for name, value in pending.items():
                 try:
-                    self.world.set(name, _numeric(value, name) if isinstance(value, list) else value)
+                    self.world.set(name, _value(value, name))
                 except (DynabrainError, ValueError, TypeError) as exc:
                     self._input_error(f"input {name!r} dropped: {exc}")
         finally:
@@ -398,6 +395,18 @@ class WorldService:
 
     def do_status(self, a: p.NoArgs) -> dict[str, Any]:
         return self.status()
+
+
+def _value(value: Any, name: str) -> Any:
+    """A value to set: lists of numbers become arrays; structured lists (a servo's ``sequence`` of
+    ``{pose, duration}`` steps, names) go to the module as they are."""
+    return _numeric(value, name) if isinstance(value, list) and not _structured(value) else value
+
+
+def _structured(value: Any) -> bool:
+    if isinstance(value, (dict, str)):
+        return True
+    return isinstance(value, list) and any(_structured(v) for v in value)
 
 
 def _numeric(value: list[Any], name: str) -> np.ndarray:

@@ -1,7 +1,8 @@
 """An example brain: it plans a motion in a fork of the world it is served, retries with a backtick
 when the prediction goes wrong, and then executes the plan on the world, on the robot, or both.
 
-The world is ``bridge/arm.yaml`` (a three-joint arm and a cube; the humanoid comes later):
+The world is ``bridge/arm.yaml`` (a three-joint arm and a cube, with a robot rig; the humanoid's brain is
+`humanoid_brain`):
 
 1. *stand*: bring the arm upright and wait until it is still;
 2. *a motion sequence*: reach down beside the cube, sweep over it, come back. Each keyframe is tried in the fork first;

@@ -3,9 +3,9 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
-import sys
 
 from .protocol import schema
 
@@ -17,8 +17,9 @@ def render() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = sys.argv[1:] if argv is None else argv
-    path = args[0] if args else DEFAULT_PATH
+    parser = argparse.ArgumentParser(prog="python -m dynabrain.bridge.schema", description=__doc__)
+    parser.add_argument("path", nargs="?", default=DEFAULT_PATH, help="where to write the schema")
+    path = parser.parse_args(argv).path
     with open(path, "w", encoding="utf-8") as fh:
         fh.write(render())
     print(f"wrote {path}")

@@ -79,8 +79,11 @@ def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: boo
 # -- commands -------------------------------------------------------------------------------------------
 def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
            verify: Annotated[bool, typer.Option("--verify", help="re-simulate and compare every tick")] = False,
-           publish: Annotated[bool, typer.Option("--publish", help="re-publish over Zenoh (needs the bridge)")] = False,
+           publish: Annotated[bool, typer.Option("--publish", help="re-publish over Zenoh")] = False,
            speed: Annotated[float, typer.Option(help="--publish speed factor (1 = real time)")] = 1.0,
+           listen: Annotated[list[str] | None, typer.Option(help="--publish: Zenoh endpoint to listen on "
+                                                            "(default tcp/127.0.0.1:7447)")] = None,
+           connect: Annotated[list[str] | None, typer.Option(help="--publish: Zenoh endpoint to connect to")] = None,
            events: Annotated[int, typer.Option(help="how many events to list")] = 40) -> None:
     """Summarize a log (duration, channels, events); --verify re-simulates it and compares bit for bit."""
     from .mcap_read import read_index
@@ -90,7 +93,12 @@ def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
         for line in summarize(read_index(log), max_events=events):
             out.print(line, markup=False)
         if publish:
-            publisher()(os.fspath(log), speed=speed)
+            if listen or connect:
+                from dynabrain.bridge.zenoh_io import Settings
+
+                publisher()(os.fspath(log), speed=speed, settings=Settings(listen=listen or [], connect=connect or []))
+            else:
+                publisher()(os.fspath(log), speed=speed)
         if verify:
             _verify(log)
 

@@ -96,11 +96,10 @@ def describe(event: dict) -> str:
 
 
 def publisher() -> Callable[..., None]:
-    """The bridge's recording publisher, or a clear error saying publishing needs the bridge."""
+    """The bridge's recording publisher (`dynabrain.bridge.publish_recording`)."""
     try:
         from dynabrain.bridge import publish_recording  # type: ignore[attr-defined]
     except ImportError:
-        raise DynabrainError("replay --publish re-publishes a recording over Zenoh, which needs the Zenoh bridge "
-                             "(dynabrain.bridge.publish_recording); this version of dynabrain does not have it "
-                             "yet") from None
+        raise DynabrainError("replay --publish needs the Zenoh bridge (dynabrain.bridge.publish_recording), "
+                             "which could not be imported") from None
     return publish_recording

@@ -66,7 +66,6 @@ def test_plot_writes_a_png(cubes_log, tmp_path):
     (("plot", "{log}", "aa.poz"), "no signal 'aa.poz' in"),
     (("plot", "{log}", "aa.pos[5]"), "core.aa.pos has 3 component(s), so [5] does not exist"),
     (("plot", "{tmp}/other.mcap", "x"), "has no dynabrain bus channel"),
-    (("replay", "{log}", "--publish"), "replay --publish re-publishes a recording over Zenoh, which needs"),
     (("log", "recover", "{tmp}/notes.txt"), "notes.txt is not an MCAP file"),
 ])
 def test_bad_input_is_a_clear_error_with_exit_code_2(cubes_log, tmp_path, args, message):
