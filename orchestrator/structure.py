@@ -141,7 +141,9 @@ class Structure:
     set of connections has too many separate runs (``delayed`` is then empty)."""
     capture: tuple[tuple[Module | None, object], ...] = ()
     """`savers` ready for the history's capture: (module, its bound ``get_state``) for `SAVE_STATE`,
-    (module, None) for `SAVE_PARAMS`, (None, None) for `SAVE_NONE`."""
+    (module, NoneType) for `SAVE_PARAMS`, (None, None) for `SAVE_NONE`."""
+    all_restorable: bool = True
+    """No module is `SAVE_NONE` (the capture needs no test per module)."""
 
     def record(self, name: str) -> ModuleRecord | None:
         for rec in self.records:
@@ -184,10 +186,12 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
     dispatch = tuple((st.record.name, st.record.module.step, st.record.period_ns, st.record.period_ticks,
                       st.record.phase, *_split_gather(st.copies)) for st in plan)
     delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
-    capture = tuple((None, None) if how == SAVE_NONE else (m, m.get_state if how == SAVE_STATE else None)
+    # (module, a no-argument callable giving its state): a module with no state of its own gets
+    # NoneType (calling it gives None, in C); a module that cannot roll back gets (None, None)
+    capture = tuple((None, None) if how == SAVE_NONE else (m, m.get_state if how == SAVE_STATE else type(None))
                     for m, how in savers)
     return Structure(records, connections, layout, tuple(plan), delayed_mv, savers, dispatch, delayed_gather,
-                     capture)
+                     capture, all(how != SAVE_NONE for _, how in savers))
 
 
 SAVE_NONE, SAVE_PARAMS, SAVE_STATE = 0, 1, 2

@@ -67,6 +67,7 @@ class World:
         self._thread_error: BaseException | None = None
         self._source = "api"  # who is editing: "scenario" while scheduled actions run
         self._snapshots = itertools.count(1)
+        self._id = id(self)
         self.error: BaseException | None = None
         if core is not None:
             self.add_module(core)
@@ -209,9 +210,11 @@ class World:
     # -- state ----------------------------------------------------------------------------------------
     def _capture(self) -> WorldState:
         structure = self._structure
-        states = tuple([(m._param_values, get()) if get is not None else
-                        (m._param_values, None) if m is not None else None for m, get in structure.capture])
-        return WorldState(id(self), self._tick, structure, self._buf.copy(), states)
+        if structure.all_restorable:
+            states = tuple([(m._param_values, get()) for m, get in structure.capture])
+        else:
+            states = tuple([(m._param_values, get()) if m is not None else None for m, get in structure.capture])
+        return WorldState(self._id, self._tick, structure, self._buf.copy(), states)
 
     def _apply(self, state: WorldState) -> None:
         if state.structure is not self._structure:
@@ -244,7 +247,7 @@ class World:
         """Return to a snapshot of this world. History restarts at the restored state."""
         with self._lock:
             self._check_open()
-            if not isinstance(state, WorldState) or state.world_id != id(self):
+            if not isinstance(state, WorldState) or state.world_id != self._id:
                 raise RollbackError("restore() takes a snapshot made by this same world (use fork() to copy)")
             self._check_restorable(state, "restore")
             from_tick = self._tick
