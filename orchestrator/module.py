@@ -67,6 +67,9 @@ class Port:
     unit: str = "1"
     doc: str = ""
     view_of: tuple[str, int] | None = None
+    start: float | tuple[float, ...] | None = None
+    """The value the bus slot holds when the port appears (default 0): an input nothing drives yet
+    reads it (an FMU input's start value, a servo's neutral target)."""
 
     @property
     def size(self) -> int:

@@ -379,6 +379,10 @@ class World:
         """Make ``structure`` current: allocate the bus, carry values by name, rebind modules."""
         old_layout, old_buf = self._structure.layout, self._buf
         buf = np.zeros(structure.layout.size)
+        for slot in structure.layout.slots.values():  # start values first: new ports begin there
+            if slot.port.start is not None:
+                buf[slot.start:slot.start + slot.size] = np.broadcast_to(
+                    np.asarray(slot.port.start, dtype=np.float64), slot.shape).reshape(-1)
         if carry_values:
             for name, slot in structure.layout.slots.items():
                 old = old_layout.slots.get(name)

@@ -350,3 +350,20 @@ def test_ports_not_side_by_side_in_memory_go_through_staging_buffers():
         assert out["force"] == pytest.approx(-80.0) and out["position"] == 0.0
     finally:
         m.close()
+
+
+def test_unconnected_inputs_read_the_fmus_start_values(tmp_path):
+    src = tmp_path / "biased"
+    src.mkdir()
+    (src / "fmu.yaml").write_text("name: biased\nfmi: [2]\nstep: 0.001\nvariables:\n"
+                                  "  - {name: u, causality: input, start: 1.5}\n"
+                                  "  - {name: y, causality: output}\n")
+    (src / "biased.c").write_text('#include "fmu_model.h"\n'
+                                  "int model_init(ModelData *m) { m->y = m->u; return MODEL_OK; }\n"
+                                  "int model_step(ModelData *m, double h) { (void)h; m->y = 2 * m->u; "
+                                  "return MODEL_OK; }\n")
+    with World(step="1ms") as w:
+        w.add_module(make_fmu_module("b", str(src), base_dir=str(tmp_path), params={}, targets=[]))
+        assert w.get("b.u") == 1.5  # the bus slot starts at the FMU's start value
+        w.tick()
+        assert w.get("b.y") == 3.0

@@ -352,3 +352,24 @@ def test_events_say_whether_the_scenario_or_a_caller_made_them():
     w.tick(3)
     w.set("g.k", 1.0)
     assert kinds == [("param", "scenario", 2), ("param", "api", 3)]
+
+
+def test_ports_begin_at_their_start_values():
+    class Biased(Module):
+        def inputs(self):
+            return (Port("u", (2,), start=(1.0, -1.0)), Port("k", (), start=3.0))
+
+        def outputs(self):
+            return (Port("y", (2,)),)
+
+        def step(self, t_ns, dt_ns):
+            self.out["y"][...] = self.inp["u"] * self.inp["k"]
+
+    w = World(step="1ms")
+    w.add_module(Biased("b"))
+    w.tick()
+    assert list(w.get("b.y")) == [3.0, -3.0]
+    w.set("b.k", 0.5)
+    w.add_module(Counter("c"))  # a new structure keeps the values the ports have now
+    w.tick()
+    assert list(w.get("b.y")) == [0.5, -0.5]

@@ -35,12 +35,23 @@ def make_param(sig: Signal) -> Param:
 
 
 def make_ports(signals: Sequence[Signal]) -> tuple[Port, ...]:
-    """Block ports in order, then a view port ``name[i]`` per element of each vector."""
-    ports = [Port(s.name, s.shape, s.unit, s.description) for s in signals]
+    """Block ports in order (starting at the FMU's start values), then a view port ``name[i]`` per
+    element of each vector."""
+    ports = [Port(s.name, s.shape, s.unit, s.description, start=_start(s)) for s in signals]
     for s in signals:
         if len(s.shape) == 1:
             ports += [Port(f"{s.name}[{i + 1}]", (), s.unit, view_of=(s.name, i)) for i in range(s.shape[0])]
     return tuple(ports)
+
+
+def _start(sig: Signal) -> float | tuple[float, ...] | None:
+    try:
+        values = tuple(float(v) for v in sig.start)
+    except (TypeError, ValueError):
+        return None
+    if not values:
+        return None
+    return values if sig.shape else values[0]
 
 
 class FMUModuleBase(Module):
