@@ -43,8 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from dynabrain.orchestrator.core import BodyInfo, PhysicsCore, SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.orchestrator.core import BodyInfo, EditedCore, SceneSpec
+from dynabrain.orchestrator.errors import PhysicsDivergedError
 from dynabrain.orchestrator.module import Param, Port, SetupContext
 from dynabrain.orchestrator.suggest import did_you_mean
 
@@ -69,7 +69,7 @@ MIN_ZONE = 0.01
 to friction * (impact force / mass) * step a step, and a wider zone calms it (at the price of creep)."""
 
 
-class ExudynCore(PhysicsCore):
+class ExudynCore(EditedCore):
     """A physics core on Exudyn. ``scene`` is primitives (no model files); see the module docstring."""
 
     ENGINE = "exudyn"
@@ -305,16 +305,6 @@ class ExudynCore(PhysicsCore):
     def joints(self) -> list[str]:
         return list(self._top.joints)
 
-    def _row(self, name: str) -> int:
-        row = self._rows.get(name)
-        if row is None:
-            raise self._unknown("body", name, self._top.bodies)
-        return row
-
-    def _unknown(self, kind: str, name: str, known: Sequence[str]) -> DynabrainError:
-        listed = ", ".join(known[:12]) + (", ..." if len(known) > 12 else "") if known else "none"
-        return fail(self.name, f"no {kind} {name!r}" + did_you_mean(str(name), known) + f"; {kind}s: {listed}")
-
     def body_info(self, name: str) -> BodyInfo:
         row, top = self._row(name), self._top
         b = top.spec[name]
@@ -341,31 +331,6 @@ class ExudynCore(PhysicsCore):
         return self._s.cable_coords(name)[0][:, :3].copy()
 
     # -- structural edits --------------------------------------------------------------------------------------
-    @property
-    def selection(self) -> tuple[str, ...]:
-        frozen = {entry[0] for entry in self._edits[0]}
-        return tuple(o for o in self._top.objects if o not in frozen)
-
-    def make(self, objects: Sequence[str]) -> None:
-        chosen = self._objects(objects)
-        frozen, welds, groups = self._edits
-        kept = {entry[0]: entry for entry in frozen}
-        entries = tuple(kept.get(o) or self._freeze_entry(o) for o in self._top.objects if o not in chosen)
-        self._edit((entries, welds, groups))
-
-    def _objects(self, objects: Sequence[str]) -> set[str]:
-        out = set()
-        for o in [objects] if isinstance(objects, str) else objects:
-            if o not in self._top.objects:
-                if o in self._rows:
-                    top = o
-                    while self._top.spec[top].parent is not None:
-                        top = self._top.spec[top].parent
-                    raise fail(self.name, f"{o!r} is not an object but a body of object {top!r}")
-                raise self._unknown("object", o, self._top.objects)
-            out.add(o)
-        return out
-
     def _freeze_entry(self, obj: str) -> tuple:
         """(object, ((body, world pose 7), ...), ((joint, q), ...), ((cable, coords), ...)), now."""
         top = self._top
@@ -380,41 +345,14 @@ class ExudynCore(PhysicsCore):
                 cables.append((b, tuple(map(float, self._s.cable_coords(b)[0].reshape(-1)))))
         return (obj, tuple(bodies), tuple(joints), tuple(cables))
 
-    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
-        self._row(a)
-        self._row(b)
-        if a == b:
-            raise fail(self.name, f"make_joint needs two different bodies, got {a!r} twice")
-        name = name or f"joint_{a}_{b}"
-        frozen, welds, groups = self._edits
-        if name in {w[0] for w in welds} | set(self._top.joints) | set(self._top.bodies):
-            raise fail(self.name, f"a joint named {name!r} exists already")
-        rel = geo.compose(geo.inverse(self.body_pose(a)), self.body_pose(b))
-        self._edit((frozen, (*welds, (name, a, b, to7(rel))), groups))
-        return name
+    def _weld_data(self, a: str, b: str) -> tuple:
+        return to7(geo.compose(geo.inverse(self.body_pose(a)), self.body_pose(b)))
 
-    def remove_joint(self, name: str) -> None:
-        frozen, welds, groups = self._edits
-        made = [w[0] for w in welds]
-        if name not in made:
-            if name in self._top.joints:
-                raise fail(self.name, f"{name!r} is a joint of the scene; only joints made by make_joint "
-                           "can be removed")
-            raise self._unknown("joint made by make_joint", name, made)
-        self._edit((frozen, tuple(w for w in welds if w[0] != name), groups))
+    def _parent(self, body: str) -> str | None:
+        return self._top.spec[body].parent
 
-    def no_collision(self, objects: Sequence[str]) -> None:
-        names: list[str] = []
-        for o in [objects] if isinstance(objects, str) else objects:
-            self._row(o)
-            if o not in names:
-                names.append(o)
-        if len(names) < 2:
-            raise fail(self.name, f"no_collision needs at least two objects, got {names}")
-        frozen, welds, groups = self._edits
-        group = tuple(sorted(names))
-        if group not in groups:
-            self._edit((frozen, welds, (*groups, group)))
+    def _reserved_joint_names(self) -> set[str]:
+        return set(self._top.joints) | set(self._top.bodies)
 
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
         row = self._row(body)

@@ -32,10 +32,9 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.core import BodyInfo, PhysicsCore, SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.orchestrator.core import BodyInfo, EditedCore, SceneSpec
+from dynabrain.orchestrator.errors import PhysicsDivergedError
 from dynabrain.orchestrator.module import Param, Port, SetupContext
-from dynabrain.orchestrator.suggest import did_you_mean
 
 from . import mujoco_scene as ms
 
@@ -145,7 +144,7 @@ class _Structure:
         self.user_sd = sum(int(m.sensor_dim[s]) for n, s in sensors.items() if not n.startswith(ours))
 
 
-class MujocoCore(PhysicsCore):
+class MujocoCore(EditedCore):
     """A physics core on MuJoCo. ``scene`` is primitives or an MJCF file (``scene.model``)."""
 
     ENGINE = "mujoco"
@@ -418,16 +417,6 @@ class MujocoCore(PhysicsCore):
     def joints(self) -> list[str]:
         return list(self._layout.joints)
 
-    def _row(self, name: str) -> int:
-        row = self._rows.get(name)
-        if row is None:
-            raise self._unknown("body", name, self._layout.bodies)
-        return row
-
-    def _unknown(self, kind: str, name: str, known: Sequence[str]) -> DynabrainError:
-        listed = ", ".join(known[:12]) + (", ..." if len(known) > 12 else "") if known else "none"
-        return ms.fail(self.name, f"no {kind} {name!r}" + did_you_mean(str(name), known) + f"; {kind}s: {listed}")
-
     def body_info(self, name: str) -> BodyInfo:
         row, lay = self._row(name), self._layout
         return BodyInfo(name=name, free=name in lay.free, parent=lay.parents[row], geoms=lay.geoms[name])
@@ -452,31 +441,6 @@ class MujocoCore(PhysicsCore):
         return res[3:].copy(), res[:3].copy()
 
     # -- structural edits -----------------------------------------------------------------------------------
-    @property
-    def selection(self) -> tuple[str, ...]:
-        frozen = {entry[0] for entry in self._edits[0]}
-        return tuple(o for o in self._layout.objects if o not in frozen)
-
-    def make(self, objects: Sequence[str]) -> None:
-        chosen = self._objects(objects)
-        frozen, welds, groups = self._edits
-        kept = {entry[0]: entry for entry in frozen}
-        entries = tuple(kept.get(o) or self._freeze_entry(o) for o in self._layout.objects if o not in chosen)
-        self._edit((entries, welds, groups))
-
-    def _objects(self, objects: Sequence[str]) -> set[str]:
-        out = set()
-        for o in [objects] if isinstance(objects, str) else objects:
-            if o not in self._layout.objects:
-                if o in self._rows:
-                    top = o
-                    while self._layout.parents[self._rows[top]] is not None:
-                        top = self._layout.parents[self._rows[top]]
-                    raise ms.fail(self.name, f"{o!r} is not an object but a body of object {top!r}")
-                raise self._unknown("object", o, self._layout.objects)
-            out.add(o)
-        return out
-
     def _freeze_entry(self, obj: str) -> tuple:
         """(object, ((body, pose in parent or None, world pose), ...), ((joint, qpos), ...)), now."""
         s, lay = self._s, self._layout
@@ -490,43 +454,15 @@ class MujocoCore(PhysicsCore):
                 joints.append((j, tuple(map(float, s.qpos[qa:qa + nq]))))
         return (obj, tuple(bodies), tuple(joints))
 
-    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
-        self._row(a)
-        self._row(b)
-        if a == b:
-            raise ms.fail(self.name, f"make_joint needs two different bodies, got {a!r} twice")
-        name = name or f"joint_{a}_{b}"
-        frozen, welds, groups = self._edits
+    def _weld_data(self, a: str, b: str) -> tuple:
+        return ms.weld_data(*self.body_pose(a), *self.body_pose(b))
+
+    def _parent(self, body: str) -> str | None:
+        return self._layout.parents[self._rows[body]]
+
+    def _reserved_joint_names(self) -> set[str]:
         model = self._s.model
-        taken = {w[0] for w in welds} | set(self._layout.joints) | {model.equality(e).name for e in range(model.neq)}
-        if name in taken:
-            raise ms.fail(self.name, f"a joint named {name!r} exists already")
-        data = ms.weld_data(*self.body_pose(a), *self.body_pose(b))
-        self._edit((frozen, (*welds, (name, a, b, data)), groups))
-        return name
-
-    def remove_joint(self, name: str) -> None:
-        frozen, welds, groups = self._edits
-        made = [w[0] for w in welds]
-        if name not in made:
-            if name in self._layout.joints:
-                raise ms.fail(self.name, f"{name!r} is a joint of the model; only joints made by make_joint "
-                              "can be removed")
-            raise self._unknown("joint made by make_joint", name, made)
-        self._edit((frozen, tuple(w for w in welds if w[0] != name), groups))
-
-    def no_collision(self, objects: Sequence[str]) -> None:
-        names: list[str] = []
-        for o in [objects] if isinstance(objects, str) else objects:
-            self._row(o)
-            if o not in names:
-                names.append(o)
-        if len(names) < 2:
-            raise ms.fail(self.name, f"no_collision needs at least two objects, got {names}")
-        frozen, welds, groups = self._edits
-        group = tuple(sorted(names))
-        if group not in groups:
-            self._edit((frozen, welds, (*groups, group)))
+        return set(self._layout.joints) | {model.equality(e).name for e in range(model.neq)}
 
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
         self._row(body)

@@ -29,7 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import DynabrainError
 from .module import Capabilities, Module
+from .suggest import did_you_mean
 
 SHAPES = ("plane", "box", "sphere", "capsule", "cylinder")
 FLEX_SHAPES = ("cable",)
@@ -196,3 +198,113 @@ class PhysicsCore(Module):
     @abstractmethod
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
         """Move a free body to a pose at rest (zero velocity)."""
+
+
+class EditedCore(PhysicsCore):
+    """A physics core whose structural edits are one immutable value, part of its state:
+    ``self._edits = (frozen, welds, groups)``, where ``frozen`` holds one engine-made entry per
+    frozen object (its first item the object's name), ``welds`` one ``(name, a, b, data)`` per joint
+    made at run time and ``groups`` the sorted objects of each `no_collision`. The bookkeeping and
+    the checks live here; an engine says how to freeze an object (`_freeze_entry`), what a weld
+    holds (`_weld_data`) and how to rebuild itself for an edits value (`_edit`). It keeps
+    ``self._rows`` (body name -> row) and answers `objects`, `bodies`, `joints`.
+    """
+
+    _edits: tuple
+    _rows: dict[str, int]
+
+    # -- engine hooks --------------------------------------------------------------------------------
+    @abstractmethod
+    def _edit(self, edits: tuple) -> None:
+        """Make ``edits`` the current structure (state carried over)."""
+
+    @abstractmethod
+    def _freeze_entry(self, obj: str) -> tuple:
+        """What freezing ``obj`` now must remember (its first item: ``obj``)."""
+
+    @abstractmethod
+    def _weld_data(self, a: str, b: str) -> tuple:
+        """What a weld of ``b`` to ``a`` as they stand now must remember."""
+
+    @abstractmethod
+    def _parent(self, body: str) -> str | None:
+        """The parent body of ``body`` (None for a top-level object)."""
+
+    def _reserved_joint_names(self) -> set[str]:
+        """Names a joint made at run time may not take (besides the other made joints)."""
+        return set(self.joints())
+
+    # -- errors ----------------------------------------------------------------------------------------
+    def fail(self, message: str) -> DynabrainError:
+        return DynabrainError(f"{self.ENGINE} core {self.name!r}: {message}")
+
+    def _unknown(self, kind: str, name: str, known: Sequence[str]) -> DynabrainError:
+        listed = ", ".join(known[:12]) + (", ..." if len(known) > 12 else "") if known else "none"
+        return self.fail(f"no {kind} {name!r}" + did_you_mean(str(name), known) + f"; {kind}s: {listed}")
+
+    def _row(self, name: str) -> int:
+        row = self._rows.get(name)
+        if row is None:
+            raise self._unknown("body", name, self.bodies())
+        return row
+
+    # -- the edits ---------------------------------------------------------------------------------------
+    @property
+    def selection(self) -> tuple[str, ...]:
+        frozen = {entry[0] for entry in self._edits[0]}
+        return tuple(o for o in self.objects() if o not in frozen)
+
+    def make(self, objects: Sequence[str]) -> None:
+        chosen = self._objects(objects)
+        frozen, welds, groups = self._edits
+        kept = {entry[0]: entry for entry in frozen}
+        entries = tuple(kept.get(o) or self._freeze_entry(o) for o in self.objects() if o not in chosen)
+        self._edit((entries, welds, groups))
+
+    def _objects(self, objects: Sequence[str] | str) -> set[str]:
+        known = self.objects()
+        out = set()
+        for o in [objects] if isinstance(objects, str) else objects:
+            if o not in known:
+                if o in self._rows:
+                    top = o
+                    while self._parent(top) is not None:
+                        top = self._parent(top)
+                    raise self.fail(f"{o!r} is not an object but a body of object {top!r}")
+                raise self._unknown("object", o, known)
+            out.add(o)
+        return out
+
+    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
+        self._row(a)
+        self._row(b)
+        if a == b:
+            raise self.fail(f"make_joint needs two different bodies, got {a!r} twice")
+        name = name or f"joint_{a}_{b}"
+        frozen, welds, groups = self._edits
+        if name in {w[0] for w in welds} | self._reserved_joint_names():
+            raise self.fail(f"a joint named {name!r} exists already")
+        self._edit((frozen, (*welds, (name, a, b, self._weld_data(a, b))), groups))
+        return name
+
+    def remove_joint(self, name: str) -> None:
+        frozen, welds, groups = self._edits
+        made = [w[0] for w in welds]
+        if name not in made:
+            if name in self.joints():
+                raise self.fail(f"{name!r} is a joint of the scene; only joints made by make_joint can be removed")
+            raise self._unknown("joint made by make_joint", name, made)
+        self._edit((frozen, tuple(w for w in welds if w[0] != name), groups))
+
+    def no_collision(self, objects: Sequence[str]) -> None:
+        names: list[str] = []
+        for o in [objects] if isinstance(objects, str) else objects:
+            self._row(o)
+            if o not in names:
+                names.append(o)
+        if len(names) < 2:
+            raise self.fail(f"no_collision needs at least two objects, got {names}")
+        frozen, welds, groups = self._edits
+        group = tuple(sorted(names))
+        if group not in groups:
+            self._edit((frozen, welds, (*groups, group)))
