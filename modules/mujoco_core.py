@@ -316,12 +316,6 @@ class MujocoCore(EditedCore):
         self._write_all()
 
     # -- parameters -----------------------------------------------------------------------------------------
-    def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
-        spec = self.param_specs().get(name)
-        if spec is not None:  # refuse a bad value before it becomes the parameter's value
-            self._check_param(name, spec.convert(value))
-        super().set_param(name, value, running=running)
-
     def _check_param(self, name: str, value: Any) -> None:
         bad = {"friction": lambda v: v < 0, "restitution": lambda v: not 0 <= v <= 1,
                "substeps": lambda v: v < 1, "gravity": lambda v: not np.all(np.isfinite(v))}

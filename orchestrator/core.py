@@ -26,6 +26,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -198,6 +199,16 @@ class PhysicsCore(Module):
     @abstractmethod
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
         """Move a free body to a pose at rest (zero velocity)."""
+
+    # -- parameters ---------------------------------------------------------------------------------------
+    def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
+        spec = self.param_specs().get(name)
+        if spec is not None:  # refuse a bad value before it becomes the parameter's value
+            self._check_param(name, spec.convert(value))
+        super().set_param(name, value, running=running)
+
+    def _check_param(self, name: str, value: Any) -> None:
+        """Raise when ``value`` is out of range for parameter ``name`` (engines say which)."""
 
 
 class EditedCore(PhysicsCore):

@@ -101,3 +101,16 @@ def test_check_module_on_the_core_and_the_bounce_meter():
     report = check_module(meter, core=MujocoCore("core", scene()))
     report.assert_ok()
     assert "fork" in report.checked
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "exudyn"])
+def test_out_of_range_parameters_are_refused_and_change_nothing(engine):
+    from dynabrain.orchestrator.plugins import resolve_core
+
+    w = World("w", step="2ms", core=resolve_core(engine)("core", scene()))
+    w.tick(5)
+    for name, value in (("restitution", 1.5), ("friction", -0.1)):
+        with pytest.raises(DynabrainError, match=f"{engine} core 'core': parameter {name}"):
+            w.set(f"core.{name}", value)
+    assert w.get("core.restitution") == 0.0 and w.get("core.friction") == 1.0
+    w.close()
