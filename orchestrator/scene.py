@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -113,23 +114,35 @@ def _grid(fields: dict[str, Any], path: Path):
             yield shape, copy, (*path, "grid", "of", shape)
 
 
-def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
+def _field_reader(shape: str, f: dict[str, Any], keys: Sequence[str], src: YamlSource, path: Path,
+                  problems: list[Problem], *, required: bool):
+    """Check ``f``'s keys against ``keys`` and return ``field(key, parse, default)``, which parses one
+    field, records a problem (and gives ``default``) when it is bad, and, with ``required``, when a
+    field without a default is missing."""
     if not isinstance(f, dict):
-        raise DynabrainError(f"{shape} needs a mapping of fields ({', '.join(_BODY_KEYS)})")
-    before = len(problems)
+        raise DynabrainError(f"{shape} needs a mapping of fields ({', '.join(keys)})")
     for key in f:
-        if key not in _BODY_KEYS:
-            problems.append(src.problem((*path, key), f"unknown key {key!r}" + did_you_mean(key, _BODY_KEYS)
-                                        + f"; valid keys: {', '.join(_BODY_KEYS)}"))
+        if key not in keys:
+            problems.append(src.problem((*path, key), f"unknown key {key!r}" + did_you_mean(key, keys)
+                                        + f"; valid keys: {', '.join(keys)}"))
 
     def field(key: str, parse, default=None):
         if key not in f:
+            if required and default is None:
+                problems.append(src.problem(path, f"a {shape} needs {key!r}"))
             return default
         try:
             return parse(f[key])
         except (DynabrainError, ValueError, TypeError) as exc:
             problems.append(src.problem((*path, key), str(exc)))
             return default
+
+    return field
+
+
+def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
+    before = len(problems)
+    field = _field_reader(shape, f, _BODY_KEYS, src, path, problems, required=False)
 
     name = f.get("name", "floor" if shape == "plane" else None)
     if not isinstance(name, str) or not name:
@@ -159,24 +172,8 @@ def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: 
 
 def _cable(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
     """A ``cable`` item: a flexible rope from ``from`` to ``to`` (see `CableSpec`)."""
-    if not isinstance(f, dict):
-        raise DynabrainError(f"{shape} needs a mapping of fields ({', '.join(_CABLE_KEYS)})")
     before = len(problems)
-    for key in f:
-        if key not in _CABLE_KEYS:
-            problems.append(src.problem((*path, key), f"unknown key {key!r}" + did_you_mean(key, _CABLE_KEYS)
-                                        + f"; valid keys: {', '.join(_CABLE_KEYS)}"))
-
-    def field(key: str, parse, default=None):
-        if key not in f:
-            if default is None:
-                problems.append(src.problem(path, f"a {shape} needs {key!r}"))
-            return default
-        try:
-            return parse(f[key])
-        except (DynabrainError, ValueError, TypeError) as exc:
-            problems.append(src.problem((*path, key), str(exc)))
-            return default
+    field = _field_reader(shape, f, _CABLE_KEYS, src, path, problems, required=True)
 
     name = f.get("name")
     if not isinstance(name, str) or not name:
