@@ -16,10 +16,10 @@ Run: ``.venv/bin/python bench/cores.py``
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
+from timing import best_of
 
 from dynabrain.modules.exudyn_core import ExudynCore
 from dynabrain.modules.mujoco_core import MujocoCore
@@ -31,15 +31,6 @@ SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 TICK = 0.002
 
 
-def best_of(fn, repeats: int = 3) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
-
-
 def tick_cost(world: World, ticks: int = 300) -> float:
     """Seconds per module step of the core alone (no kernel, no history)."""
     core, t0 = world.core, world.time_ns
@@ -48,7 +39,7 @@ def tick_cost(world: World, ticks: int = 300) -> float:
         for k in range(ticks):
             core.step(t0 + k * world.dt_ns, world.dt_ns)
 
-    return best_of(run) / ticks
+    return best_of(run, 3) / ticks
 
 
 def cubes(z_a: float, z_b: float) -> SceneSpec:

@@ -22,10 +22,10 @@ import os
 import subprocess
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from timing import best_of
 
 from dynabrain.orchestrator.fmu import load_fmu_info
 from dynabrain.orchestrator.fmu.build import compiler
@@ -36,15 +36,6 @@ from dynabrain.orchestrator.world import World
 ROOT = Path(__file__).resolve().parents[1]
 N_FMUS, STEPS, DT_NS, CHANNELS = 10, 10_000, 1_000_000, 4
 REPEATS = 5
-
-
-def best_of(fn: Callable[[], None], repeats: int = REPEATS) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def per_fmu_step_us(seconds: float) -> float:

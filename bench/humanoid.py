@@ -24,6 +24,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+from timing import best_of_each
 
 from dynabrain.modules.floor import TWO_PI, MovingFloor, wave
 from dynabrain.modules.mujoco_core import STATE, MujocoCore
@@ -137,18 +138,6 @@ class RawLoop:
             polygon_centre(hull)
 
 
-def best_of(fns: list, repeats: int = 7) -> list[float]:
-    """Smallest time of each function over ``repeats`` rounds, the functions interleaved in each round
-    (so that a busy machine slows them alike)."""
-    best = [float("inf")] * len(fns)
-    for _ in range(repeats):
-        for i, fn in enumerate(fns):
-            t0 = time.perf_counter()
-            fn()
-            best[i] = min(best[i], time.perf_counter() - t0)
-    return best
-
-
 def measure(step: str, ticks: int = 1000) -> None:
     world = orchestrated(step)
     raw, bare = RawLoop(world), RawLoop(world)
@@ -159,7 +148,7 @@ def measure(step: str, ticks: int = 1000) -> None:
         for _ in range(ticks):
             mujoco.mj_step(bare.m, bare.d)
 
-    t_step, t_raw, t_world = (t / ticks for t in best_of([step_only, lambda: raw.run(ticks),
+    t_step, t_raw, t_world = (t / ticks for t in best_of_each([step_only, lambda: raw.run(ticks),
                                                           lambda: world.tick(ticks)]))
     ratio = t_world / t_raw
     standing = world.core.body_pose("pelvis")[0][2] > 0.25

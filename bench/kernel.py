@@ -12,21 +12,11 @@ Run: ``.venv/bin/python bench/kernel.py``
 
 from __future__ import annotations
 
-import time
+from timing import best_of
 
 from dynabrain.modules.basic import Counter
 from dynabrain.orchestrator.core import COLORS, BodySpec, SceneSpec
 from dynabrain.orchestrator.world import World
-
-
-def best_of(fn, repeats: int = 5) -> float:
-    """Smallest time of ``repeats`` runs of ``fn()`` (seconds)."""
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def kernel_overhead(ticks: int = 20000) -> None:
