@@ -107,12 +107,13 @@ def test_the_cli_replays_a_recording_to_a_subscriber_bit_for_bit(recording):
     assert code == 0, out
     assert "replayed 301 frames" in out, out
     check_frames(got, recording)
-    # pacing: 300 ticks of 2 ms at speed 2 take 0.3 s: never faster, and wall time runs at about half the
-    # simulated time (the slope of arrival against simulated time, loosely: the machine may be busy)
+    # pacing: 300 ticks of 2 ms at speed 2 take at least 0.3 s, and arrivals never run ahead of half the
+    # simulated time (the slope of arrival against simulated time). Only lower bounds: a busy machine
+    # may publish late, never early, and a test asserts no wall time from above.
     span = got.arrived[-1] - got.arrived[0]
     assert span > 0.3 * 0.8, span
     slope = np.polyfit([f.time_ns / 1e9 for f in got.frames], got.arrived, 1)[0]
-    assert 0.5 * 0.7 < slope < 0.5 * 2.0, slope
+    assert slope > 0.5 * 0.7, slope
 
 
 def test_in_process_replay_follows_the_speed_and_a_chosen_stream(recording):
