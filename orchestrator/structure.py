@@ -129,10 +129,6 @@ class Structure:
     plan: tuple[Step, ...] = ()
     delayed: Copies = ()
     """Copies of the delayed connections, made at the start of each tick."""
-    savers: tuple[tuple[Module, int], ...] = ()
-    """(module, how) per record, in record order: what history saves each tick. ``how`` is
-    `SAVE_NONE` (cannot roll back), `SAVE_PARAMS` (no state of its own: only its parameters) or
-    `SAVE_STATE`."""
     dispatch: tuple[tuple, ...] = ()
     """The plan flattened for the hot loop: (name, step, period_ns, period_ticks, phase, copies,
     gather), ``copies`` and ``gather`` as `Structure.delayed` and `Structure.delayed_gather`."""
@@ -140,8 +136,9 @@ class Structure:
     """Copies made on the bus array rather than on its memoryview: one pair of index arrays, when a
     set of connections has too many separate runs (``delayed`` is then empty)."""
     capture: tuple[tuple[Module | None, object], ...] = ()
-    """`savers` ready for the history's capture: (module, its bound ``get_state``) for `SAVE_STATE`,
-    (module, NoneType) for `SAVE_PARAMS`, (None, None) for `SAVE_NONE`."""
+    """What history saves each tick, per record in record order: (module, its bound ``get_state``)
+    for a module with state, (module, NoneType) for one with only parameters, (None, None) for one
+    that cannot roll back."""
     all_restorable: bool = True
     """No module is `SAVE_NONE` (the capture needs no test per module)."""
 
@@ -190,7 +187,7 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
     # NoneType (calling it gives None, in C); a module that cannot roll back gets (None, None)
     capture = tuple((None, None) if how == SAVE_NONE else (m, m.get_state if how == SAVE_STATE else type(None))
                     for m, how in savers)
-    return Structure(records, connections, layout, tuple(plan), delayed_mv, savers, dispatch, delayed_gather,
+    return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather,
                      capture, all(how != SAVE_NONE for _, how in savers))
 
 
