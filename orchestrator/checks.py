@@ -17,7 +17,7 @@ from __future__ import annotations
 import pickle
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -28,10 +28,13 @@ from .world import World
 
 @dataclass
 class CheckReport:
+    """What a check found. ``module`` names what was checked (a module, or an FMU for `check_fmu`)."""
+
     module: str
     problems: list[str] = field(default_factory=list)
     calls: list[str] = field(default_factory=list)
     checked: list[str] = field(default_factory=list)
+    CHECK: ClassVar[str] = "check_module"
 
     @property
     def ok(self) -> bool:
@@ -39,11 +42,12 @@ class CheckReport:
 
     def assert_ok(self) -> None:
         if self.problems:
-            raise AssertionError(f"check_module({self.module!r}) found problems:\n"
+            raise AssertionError(f"{self.CHECK}({self.module!r}) found problems:\n"
                                  + "\n".join(f"  - {p}" for p in self.problems))
 
     def __str__(self) -> str:
-        head = f"check_module({self.module!r}): {'ok' if self.ok else 'FAILED'}; checked " + ", ".join(self.checked)
+        checked = ", ".join(self.checked) or "nothing"
+        head = f"{self.CHECK}({self.module!r}): {'ok' if self.ok else 'FAILED'}; checked {checked}"
         return head + "".join(f"\n  - {p}" for p in self.problems)
 
 

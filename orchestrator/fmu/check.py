@@ -11,11 +11,12 @@ through the serialized state), and checks that every output stays finite.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
-from ..checks import check_module
+from ..checks import CheckReport, check_module
 from ..errors import DynabrainError
 from ..world import World
 from . import load_fmu_info
@@ -24,25 +25,11 @@ from .module import FMUModule
 
 
 @dataclass
-class FmuCheckReport:
-    fmu: str
+class FmuCheckReport(CheckReport):
+    """`CheckReport` of an FMU (``module`` is the FMU's path), with its model description."""
+
     info: FmuInfo | None = None
-    problems: list[str] = field(default_factory=list)
-    checked: list[str] = field(default_factory=list)
-
-    @property
-    def ok(self) -> bool:
-        return not self.problems
-
-    def assert_ok(self) -> None:
-        if self.problems:
-            lines = "\n".join(f"  - {p}" for p in self.problems)
-            raise AssertionError(f"check_fmu({self.fmu!r}) found problems:\n{lines}")
-
-    def __str__(self) -> str:
-        checked = ", ".join(self.checked) or "nothing"
-        head = f"check_fmu({self.fmu!r}): {'ok' if self.ok else 'FAILED'}; checked {checked}"
-        return head + "".join(f"\n  - {p}" for p in self.problems)
+    CHECK: ClassVar[str] = "check_fmu"
 
 
 def check_fmu(fmu: str, *, base_dir: str = ".", ticks: int = 40, step: str | int | None = None,
