@@ -276,9 +276,13 @@ def test_thread_with_concurrent_calls():
                     w.tick(2)
                     assert w.tick_count == t + 2
                 if j % 10 == 0:
+                    # Another brain's backtick may undo this brain's add_module (rollback restores
+                    # structure), so a sequence that must hold together runs under the lock.
+                    with w.lock():
+                        w.backtick(1)
+                        w.add_module(Counter(f"c{k}_{j}"))
+                        w.remove_module(f"c{k}_{j}")
                     w.backtick(1)
-                    w.add_module(Counter(f"c{k}_{j}"))
-                    w.remove_module(f"c{k}_{j}")
         except BaseException as exc:
             errors.append(exc)
 
