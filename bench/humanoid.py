@@ -41,12 +41,13 @@ POSE = {"l_hip_pitch": -15, "r_hip_pitch": -15, "l_knee": 30, "r_knee": 30, "l_a
         "r_ankle_pitch": -15, "l_shoulder_roll": 10, "r_shoulder_roll": -10, "l_elbow": -30, "r_elbow": -30}
 FLOOR = {"amplitude": 0.01, "frequency": 0.3, "tilt_amplitude": math.radians(3), "tilt_frequency": 0.2, "ramp": 1.0}
 ZMP_EVERY = 10e-3
+HIST = 1000
 
 
 def orchestrated(step: str) -> World:
     """The world of the benchmark, settled for a second."""
     core = MujocoCore("core", SceneSpec(model=str(MODEL)), friction=1.0)
-    world = World("bench", step=step, history=1000, core=core)
+    world = World("bench", step=step, history=HIST, core=core)
     world.add_module(Encoders("enc"))
     world.add_module(Servo("servo", sequence=[{"pose": POSE, "duration": "0.5s"}]),
                      connect=[("enc.q", "servo.q"), ("enc.qd", "servo.qd"), ("servo.ctrl", "core.ctrl")])
@@ -126,12 +127,13 @@ class RawLoop:
         d = self.d
         cop, fn = foot_pressure(d.site_xpos[self.sites], d.site_xmat[self.sites], wrench[:, :3],
                                 wrench[:, 3:], self.depth, self.mass, d.subtree_com[self.bodies], self.m.opt.gravity)
-        feet = self.foot_of[d.contact.geom].max(axis=1)
+        contact = d.contact
+        feet = self.foot_of[contact.geom].max(axis=1)
         touching = np.zeros(len(fn), dtype=bool)
         touching[feet[feet >= 0]] = True
-        loaded = (fn > 1.0) & touching
-        zmp = combined_pressure(cop, fn, loaded)
-        points = d.contact.pos[(feet >= 0) & loaded[np.maximum(feet, 0)]]
+        loaded = (np.array(fn) > 1.0) & touching
+        zmp = combined_pressure(cop, fn, loaded.tolist())
+        points = contact.pos[(feet >= 0) & loaded[np.maximum(feet, 0)]]
         if len(points):
             hull = convex_hull(points)
             polygon_margin(zmp, hull)

@@ -204,7 +204,7 @@ class ExudynCore(EditedCore):
         and edits (building is deterministic) and set to the same state; unbound."""
         twin = copy.copy(self)
         memo[id(self)] = twin
-        twin.inp, twin.out = {}, {}
+        twin._drop_ports()
         twin._unbind()
         twin._param_values = dict(self._param_values)
         for attr in ("_bp", "_bq", "_bl", "_ba", "_jq", "_jqd"):

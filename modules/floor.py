@@ -107,7 +107,6 @@ class MovingFloor(Module):
                            "(make) before the moving floor is added, or it will not move")
 
     def bind(self) -> None:
-        self._io = tuple(tuple(self.inp[k] for k in axis[6:8]) + tuple(self.out[k] for k in axis[8:]) for axis in _AXES)
         self._law_of: dict[str, Any] | None = None
 
     def start(self, t_ns: int) -> None:
@@ -146,13 +145,13 @@ class MovingFloor(Module):
         """References and drive forces from the state and the inputs (both axes)."""
         if self._param_values is not self._law_of:
             self._take_law()
-        e, *phases = self._state
-        for (amp, omega, kp, kd, inertia), (q, qd, ref, vel, drive), phase in zip(self._axes, self._io, phases,
-                                                                                 strict=True):
-            x, v, acc = wave(amp, omega, phase, e, de)
-            ref[...] = x
-            vel[...] = v
-            drive[...] = kp * (x - float(q)) + kd * (v - float(qd)) + inertia * acc
+        e, phi, psi = self._state
+        (amp, omega, kp, kd, inertia), (t_amp, t_omega, t_kp, t_kd, t_inertia) = self._axes
+        q, qd, tilt_q, tilt_qd = self.inp_flat.tolist()  # the inputs in the order `inputs` declares them
+        x, v, acc = wave(amp, omega, phi, e, de)
+        tx, tv, t_acc = wave(t_amp, t_omega, psi, e, de)
+        self.out_flat[:] = (x, v, kp * (x - q) + kd * (v - qd) + inertia * acc,  # the outputs, in order
+                            tx, tv, t_kp * (tx - tilt_q) + t_kd * (tv - tilt_qd) + t_inertia * t_acc)
 
     def get_state(self) -> tuple[float, float, float]:
         return self._state

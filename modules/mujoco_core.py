@@ -303,7 +303,7 @@ class MujocoCore(EditedCore):
         other structures starts empty (they are recompiled, identically, when needed)."""
         twin = copy.copy(self)
         memo[id(self)] = twin
-        twin.inp, twin.out = {}, {}
+        twin._drop_ports()
         twin._unbind()
         twin._param_values = dict(self._param_values)
         twin._source = self._source.copy()

@@ -17,7 +17,7 @@ GRAVITY = (0.0, 0.0, -9.81)
 
 def foot_pressure(site_pos: np.ndarray, site_rot: np.ndarray, force: np.ndarray, torque: np.ndarray,
                   sole_depth: np.ndarray, foot_mass: np.ndarray, foot_com: np.ndarray,
-                  gravity: Sequence[float] = GRAVITY) -> tuple[np.ndarray, np.ndarray]:
+                  gravity: Sequence[float] = GRAVITY) -> tuple[list[list[float]], list[float]]:
     """Centre of pressure and normal ground force of k feet, from 6-axis sensors at their ankles.
 
     ``site_pos`` (k, 3) and ``site_rot`` (k, 3, 3) or (k, 9) are the sensor sites in the world (rotation
@@ -26,18 +26,20 @@ def foot_pressure(site_pos: np.ndarray, site_rot: np.ndarray, force: np.ndarray,
     the site down to the sole plane along the site's z axis; the feet's own weights (``foot_mass`` (k,)
     at ``foot_com`` (k, 3)) are added, so that a static stance's centre of pressure is the projection
     of the whole body's centre of mass. The foot is taken as static (its own acceleration is
-    neglected). Returns (cop (k, 3) on each sole plane, in the world; normal force (k,) in N).
+    neglected). Returns (cop: k points [x, y, z] on each sole plane, in the world; normal force: k
+    values in N), as Python lists (a NaN point where the normal force is 0).
 
     In the site frame (z the sole's normal, the sole plane at z = -d through o = (0, 0, -d)): the
     ground force is ``G = -f - W`` (W the foot's weight), its moment about o is
     ``M = -t - (0, 0, d) x f - (c - o) x W``, and the centre of pressure is ``(-M_y, M_x) / G_z``.
     """
     k = len(site_pos)
-    cop, fn = np.empty((k, 3)), np.empty(k)
-    g0, g1, g2 = (float(x) for x in gravity)
+    cop: list[list[float]] = []
+    fn: list[float] = []
+    g0, g1, g2 = map(float, gravity)
     rots, poss, coms = np.asarray(site_rot).reshape(k, 9).tolist(), site_pos.tolist(), foot_com.tolist()
-    for i, (r, s, c, f, t, d, m) in enumerate(zip(rots, poss, coms, force.tolist(), torque.tolist(),
-                                                   sole_depth.tolist(), foot_mass.tolist(), strict=True)):
+    for r, s, c, f, t, d, m in zip(rots, poss, coms, force.tolist(), torque.tolist(), sole_depth.tolist(),
+                                   foot_mass.tolist(), strict=True):
         w0, w1, w2 = m * g0, m * g1, m * g2
         ws0 = r[0] * w0 + r[3] * w1 + r[6] * w2  # the weight in the site frame (R^T w)
         ws1 = r[1] * w0 + r[4] * w1 + r[7] * w2
@@ -49,27 +51,27 @@ def foot_pressure(site_pos: np.ndarray, site_rot: np.ndarray, force: np.ndarray,
         mx = -t[0] + d * f[1] - (c1 * ws2 - c2 * ws1)
         my = -t[1] - d * f[0] - (c2 * ws0 - c0 * ws2)
         gz = -f[2] - ws2
-        fn[i] = gz
+        fn.append(gz)
         if gz == 0.0:
-            cop[i] = math.nan
+            cop.append([math.nan, math.nan, math.nan])
             continue
         p0, p1, p2 = -my / gz, mx / gz, -d
-        cop[i, 0] = s[0] + r[0] * p0 + r[1] * p1 + r[2] * p2
-        cop[i, 1] = s[1] + r[3] * p0 + r[4] * p1 + r[5] * p2
-        cop[i, 2] = s[2] + r[6] * p0 + r[7] * p1 + r[8] * p2
+        cop.append([s[0] + r[0] * p0 + r[1] * p1 + r[2] * p2, s[1] + r[3] * p0 + r[4] * p1 + r[5] * p2,
+                    s[2] + r[6] * p0 + r[7] * p1 + r[8] * p2])
     return cop, fn
 
 
-def combined_pressure(cop: np.ndarray, fn: np.ndarray, loaded: np.ndarray) -> np.ndarray:
-    """The centre of pressure of several loaded feet (the ZMP), NaN when none is loaded."""
+def combined_pressure(cop: Sequence[Sequence[float]], fn: Sequence[float],
+                      loaded: Sequence[bool]) -> tuple[float, float, float]:
+    """The centre of pressure (x, y, z) of several loaded feet (the ZMP), NaN when none is loaded."""
     total, x, y, z = 0.0, 0.0, 0.0, 0.0
-    for (px, py, pz), w, on in zip(cop.tolist(), fn.tolist(), loaded.tolist(), strict=True):
+    for (px, py, pz), w, on in zip(cop, fn, loaded, strict=True):
         if on:
             total += w
             x, y, z = x + px * w, y + py * w, z + pz * w
     if total <= 0.0:
-        return np.full(3, np.nan)
-    return np.array((x / total, y / total, z / total))
+        return (math.nan, math.nan, math.nan)
+    return (x / total, y / total, z / total)
 
 
 def convex_hull(points: np.ndarray) -> list[list[float]]:

@@ -75,9 +75,6 @@ class ZmpSensor(Module):
         self._link.changed()
         self._resolve()
 
-    def bind(self) -> None:
-        self._out = self.out
-
     def _resolve(self) -> None:
         link = self._link
         m = link.model
@@ -132,50 +129,37 @@ class ZmpSensor(Module):
         cop, fn = foot_pressure(d.site_xpos[self._sites], d.site_xmat[self._sites],
                                 wrench[:, :3], wrench[:, 3:], self._depth, self._mass,
                                 d.subtree_com[self._bodies], m.opt.gravity)
-        feet = self._contact_feet(d)
-        touching = set(feet.tolist())
-        least = self._param_values["min_force"]
-        forces = fn.tolist()
-        flags = [f > least and k in touching for k, f in enumerate(forces)]
-        loaded = np.array(flags)
-        out = self._out
-        for k, on in enumerate(flags):
-            if not on:
-                cop[k] = math.nan
-                forces[k] = 0.0
-        out["cop"][...] = cop
-        out["force"][...] = forces
-        zmp = combined_pressure(cop, fn, loaded)
-        out["zmp"][...] = zmp
-        points = self._contact_points(d, feet, loaded, all(flags))
-        hull = convex_hull(points) if len(points) else []
-        margin = polygon_margin(zmp, hull)
-        out["margin"][...] = margin if math.isfinite(margin) else math.nan
-        out["inside"][...] = 1.0 if margin >= self._param_values["min_margin"] and len(hull) >= 3 else 0.0
-        centre = out["center"]
-        if hull:
-            centre[0], centre[1] = polygon_centre(hull)
-            heights = points[:, 2].tolist()
-            centre[2] = sum(heights) / len(heights)
+        if d.ncon:  # the foot each contact of the core's current list involves (-1 for none)
+            contact = d.contact
+            feet = self._foot_of[contact.geom].max(axis=1)
+            touching = set(feet.tolist())
         else:
-            centre[...] = math.nan
+            touching = set()
+        least = self._param_values["min_force"]
+        loaded = [f > least and k in touching for k, f in enumerate(fn)]
+        zmp = combined_pressure(cop, fn, loaded)
+        values = list(zmp)  # every output in the order `outputs` declares them, written at once
+        for point, on in zip(cop, loaded, strict=True):
+            values += point if on else _NAN3
+        values += [f if on else 0.0 for f, on in zip(fn, loaded, strict=True)]
+        inside, margin, centre = 0.0, math.nan, _NAN3
+        if any(loaded):  # then some contact involves a loaded foot: the support polygon has points
+            keep = feet >= 0
+            if not all(loaded):
+                keep[keep] = np.array(loaded)[feet[keep]]
+            points = contact.pos[keep]
+            hull = convex_hull(points)
+            distance = polygon_margin(zmp, hull)
+            if math.isfinite(distance):
+                margin = distance
+                inside = 1.0 if distance >= self._param_values["min_margin"] and len(hull) >= 3 else 0.0
+            heights = points[:, 2].tolist()
+            centre = (*polygon_centre(hull), sum(heights) / len(heights))
+        values += (inside, margin, *centre)
+        self.out_flat[:] = values
 
-    def _contact_feet(self, d: mujoco.MjData) -> np.ndarray:
-        """For each contact of the core's current list, the foot it involves (-1 for none)."""
-        if d.ncon == 0:
-            return np.zeros(0, dtype=np.intp)
-        return self._foot_of[d.contact.geom].max(axis=1)
 
-    @staticmethod
-    def _contact_points(d: mujoco.MjData, feet: np.ndarray, loaded: np.ndarray, every: bool) -> np.ndarray:
-        """Contact points (n, 3) of the loaded feet (``feet``: the foot of each contact, or -1;
-        ``every``: all feet are loaded)."""
-        if not len(feet) or not loaded.any():
-            return np.zeros((0, 3))
-        keep = feet >= 0
-        if not every:
-            keep[keep] = loaded[feet[keep]]
-        return d.contact.pos[keep]
+_NAN3 = (math.nan, math.nan, math.nan)
 
 
 def _sole_depth(m: mujoco.MjModel, d: mujoco.MjData, site: int, geoms: list[int]) -> float:

@@ -53,6 +53,10 @@ if TYPE_CHECKING:
     from .core import PhysicsCore
 
 
+NO_PORTS = np.zeros(0)  # what `Module.inp_flat` and `out_flat` are while a module is not bound
+NO_PORTS.setflags(write=False)
+
+
 @dataclass(frozen=True)
 class Port:
     """A named, typed slot on the signal bus. Values are float64 arrays of ``shape``.
@@ -174,8 +178,24 @@ class Module:
         self.name = name
         self.targets: tuple[str, ...] = tuple(targets)
         self._param_values: dict[str, Any] = self._resolve_params(params)
+        self._drop_ports()
+
+    def _drop_ports(self) -> tuple:
+        """Unbind the ports (for a copy, or before a world binds them); returns what was bound."""
+        bound = (self.inp, self.out, self.inp_flat, self.out_flat) if hasattr(self, "inp") else None
         self.inp: Mapping[str, np.ndarray] = {}
         self.out: Mapping[str, np.ndarray] = {}
+        self.inp_flat: np.ndarray = NO_PORTS
+        """Every input (in the order `inputs` declares them) as one flat, read-only float64 array."""
+        self.out_flat: np.ndarray = NO_PORTS
+        """All of this module's own outputs (not the ``view_of`` ports) as one flat float64 array, in
+        the order `outputs` declares them: a module with many small outputs writes them all with one
+        assignment (``self.out_flat[:] = values``)."""
+        return bound
+
+    def _take_ports(self, bound: tuple) -> None:
+        """Bind the ports (the world does, then calls `bind`)."""
+        self.inp, self.out, self.inp_flat, self.out_flat = bound
 
     # -- parameters -----------------------------------------------------------------------------
     @classmethod
@@ -241,7 +261,7 @@ class Module:
         """Join a world: resolve targets, allocate resources. Called once per world."""
 
     def bind(self) -> None:
-        """``self.inp`` / ``self.out`` were (re)bound; refresh any cached views of them."""
+        """``self.inp`` / ``self.out`` (and their flat forms) were (re)bound; refresh any cached views of them."""
 
     def start(self, t_ns: int) -> None:
         """Initial state at the joining tick; write every output's initial value."""

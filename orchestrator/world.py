@@ -29,9 +29,9 @@ import numpy as np
 from .core import PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
-from .module import Module, SetupContext
+from .module import NO_PORTS, Module, Port, SetupContext
 from .observers import Observer, WorldEvent, WorldView
-from .structure import Connection, ModuleRecord, Structure, build_structure, split_signal
+from .structure import BusLayout, Connection, ModuleRecord, Structure, build_structure, split_signal
 from .suggest import did_you_mean
 from .units import NS_PER_S, format_duration, parse_duration_ns
 
@@ -271,8 +271,7 @@ class World:
             memo: dict[int, Any] = {}
             bindings = {}
             for rec in self._structure.records:
-                bindings[rec.name] = (rec.module.inp, rec.module.out)
-                rec.module.inp, rec.module.out = {}, {}
+                bindings[rec.name] = rec.module._drop_ports()
             clones: dict[str, Module] = {}
             try:
                 for rec in self._structure.records:
@@ -283,7 +282,7 @@ class World:
                 raise
             finally:
                 for rec in self._structure.records:
-                    rec.module.inp, rec.module.out = bindings[rec.name]
+                    rec.module._take_ports(bindings[rec.name])
             other = World(name or f"{self.name}-fork", step=self.dt_ns, seed=self.seed,
                           history=self._history.depth)
             records = [ModuleRecord(r.name, clones[r.name], r.period_ticks, r.phase, r.period_ns, r.inputs,
@@ -398,8 +397,8 @@ class World:
                     view = buf[slot.start:slot.start + slot.size].reshape(slot.shape)
                     view.setflags(write=writable)
                     target[port.name] = view
-            rec.module.inp = inp
-            rec.module.out = out
+            rec.module._take_ports((inp, out, _flat(buf, structure.layout, rec, rec.inputs, False),
+                                    _flat(buf, structure.layout, rec, rec.outputs, True)))
             rec.module.bind()
 
     # -- scene edits (delegated to the core; part of its state) ----------------------------------------
@@ -685,6 +684,16 @@ def module_spec(module: Module, period_ns: int, connections: Sequence[Connection
     if connections:
         spec["connect"] = [[c.src, c.dst, {"delay": True}] if c.delay else [c.src, c.dst] for c in connections]
     return spec
+
+
+def _flat(buf: np.ndarray, layout: BusLayout, rec: ModuleRecord, ports: Sequence[Port], writable: bool) -> np.ndarray:
+    """One flat view of a module's own ports of one direction (the bus lays them out in a row)."""
+    own = [layout.slots[f"{rec.name}.{p.name}"] for p in ports if p.view_of is None]
+    if not own:
+        return NO_PORTS
+    view = buf[own[0].start:own[-1].start + own[-1].size]
+    view.setflags(write=writable)
+    return view
 
 
 def _read_only(buf: np.ndarray) -> np.ndarray:
