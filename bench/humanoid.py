@@ -41,13 +41,13 @@ POSE = {"l_hip_pitch": -15, "r_hip_pitch": -15, "l_knee": 30, "r_knee": 30, "l_a
         "r_ankle_pitch": -15, "l_shoulder_roll": 10, "r_shoulder_roll": -10, "l_elbow": -30, "r_elbow": -30}
 FLOOR = {"amplitude": 0.01, "frequency": 0.3, "tilt_amplitude": math.radians(3), "tilt_frequency": 0.2, "ramp": 1.0}
 ZMP_EVERY = 10e-3
-HIST = 1000
+HISTORY = 1000  # ticks of history kept (the World default): each tick saves a state
 
 
 def orchestrated(step: str) -> World:
     """The world of the benchmark, settled for a second."""
     core = MujocoCore("core", SceneSpec(model=str(MODEL)), friction=1.0)
-    world = World("bench", step=step, history=HIST, core=core)
+    world = World("bench", step=step, history=HISTORY, core=core)
     world.add_module(Encoders("enc"))
     world.add_module(Servo("servo", sequence=[{"pose": POSE, "duration": "0.5s"}]),
                      connect=[("enc.q", "servo.q"), ("enc.qd", "servo.qd"), ("servo.ctrl", "core.ctrl")])
