@@ -17,7 +17,8 @@ Lifecycle (the order the world calls a module in; `check_module` verifies it)::
                                        #    values of every output port
     loop, at ticks where the module is due (every `period` of its own):
         m.step(t_ns, dt_ns)            # 6. advance state from t_ns to t_ns + dt_ns: read m.inp[...],
-                                       #    write m.out[...] in place (`m.out["y"][...] = v`)
+                                       #    write m.out[...] in place (`m.out["y"][...] = v`); or all
+                                       #    ports at once: m.inp_flat, m.out_flat (declaration order)
         m.get_state()                  # 7. after each tick, for history (only when can_rollback)
     m.set_state(s)                     #    on rollback / restore, between steps, any number of times
     m.on_param(name, value)            #    a run-time parameter changed (also when a rollback changes

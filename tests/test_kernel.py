@@ -377,3 +377,41 @@ def test_ports_begin_at_their_start_values():
     w.add_module(Counter("c"))  # a new structure keeps the values the ports have now
     w.tick()
     assert list(w.get("b.y")) == [0.5, -0.5]
+
+
+class Mixer(Module):
+    """Reads its inputs and writes its outputs through the flat views (with a block port and a view)."""
+
+    def inputs(self):
+        return (Port("a", (1,)), Port("b", (2,)))
+
+    def outputs(self):
+        return (Port("sum", ()), Port("rows", (2, 2)), Port("row1", (2,), view_of=("rows", 1)), Port("last", ()))
+
+    def step(self, t_ns, dt_ns):
+        a, b0, b1 = self.inp_flat.tolist()
+        self.out_flat[:] = (a + b0 + b1, a, b0, b1, a * 2, t_ns * 1e-9)
+
+
+def test_flat_port_views_follow_declaration_order_and_survive_rebinding_and_fork():
+    w = World(step="1ms")
+    w.add_module(Constant("k", value=[3.0]))
+    w.add_module(Mixer("m"), connect=[("k.y", "m.a")])
+    w.set("m.b", [1.0, 2.0])
+    w.tick(2)
+    assert w.get("m.sum") == 6.0 and w.get("m.last") == pytest.approx(1e-3)
+    assert np.array_equal(w.get("m.rows"), [[3.0, 1.0], [2.0, 6.0]]) and np.array_equal(w.get("m.row1"), [2.0, 6.0])
+    mixer = w.modules["m"]
+    assert mixer.out_flat.size == 6 and mixer.inp_flat.size == 3  # views are not counted twice
+    with pytest.raises(ValueError):
+        mixer.inp_flat[0] = 1.0  # inputs are read-only, as in `inp`
+    w.add_module(Counter("c"))  # a new structure: the flat views are bound again, to the new bus
+    w.set("m.b", [0.0, 0.0])
+    w.tick()
+    assert w.get("m.sum") == 3.0
+    f = w.fork()
+    f.set("m.b", [1.0, 1.0])
+    f.tick()
+    assert f.get("m.sum") == 5.0 and w.get("m.sum") == 3.0  # the fork writes its own bus
+    f.close()
+    w.close()
