@@ -50,6 +50,8 @@ class ModuleCfg(_Strict):
     """An FMU: a ``.fmu`` file or a source folder under ``fmus/`` (built on first use)."""
     isolate: bool = False
     """Run the FMU in a process of its own (a crash is reported, not fatal)."""
+    call_timeout: str | int | float | None = None
+    """With ``isolate``: how long one FMU call may take before its process is killed (default 30 s)."""
     params: dict[str, Any] = {}
     period: str | int | float | None = None
     targets: list[str] = []
@@ -235,15 +237,28 @@ class _Builder:
             from .fmu import make_fmu_module
             from .fmu.errors import FMUError
 
+            timeout = None
+            if cfg.call_timeout is not None:
+                try:
+                    timeout = parse_duration_ns(cfg.call_timeout, allow_frequency=False) / 1e9
+                    if not cfg.isolate or timeout <= 0:
+                        raise DynabrainError("a positive duration, for an FMU with `isolate: true`")
+                except DynabrainError as exc:
+                    self.report((*path, "call_timeout"), f"call_timeout {cfg.call_timeout!r}: {exc}")
+                    return None
             try:
                 return make_fmu_module(cfg.name, cfg.fmu, base_dir=self.sc.dir, params=cfg.params,
-                                       targets=cfg.targets, isolate=cfg.isolate)
+                                       targets=cfg.targets, isolate=cfg.isolate, call_timeout=timeout)
             except DynabrainError as exc:
                 self.report((*path, "fmu" if isinstance(exc, FMUError) else "params"), str(exc))
                 return None
         if cfg.python is None:
             self.report(path, f"module {cfg.name!r} needs `python: package.module:Class` (or `fmu:`)")
             return None
+        for key, given in (("isolate", cfg.isolate), ("call_timeout", cfg.call_timeout is not None)):
+            if given:
+                self.report((*path, key), f"{key} applies to an FMU module (`fmu:`), not to a Python class")
+                return None
         try:
             cls = resolve_class(cfg.python)
         except DynabrainError as exc:

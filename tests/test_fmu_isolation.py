@@ -12,8 +12,10 @@ import pytest
 from mcap.reader import make_reader
 
 from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.fmu import FMUCallError, FMUCrashError, make_fmu_module
+from dynabrain.orchestrator.errors import ScenarioError
+from dynabrain.orchestrator.fmu import FMUCallError, FMUCrashError, FMUTimeoutError, make_fmu_module
 from dynabrain.orchestrator.mcap_logger import McapLogger
+from dynabrain.orchestrator.scenario import load_scenario
 from dynabrain.orchestrator.world import World
 
 FMUS = Path(__file__).resolve().parents[1] / "fmus"
@@ -22,7 +24,7 @@ CRASHY_VARS = """\
   - {name: u, causality: input}
   - {name: y, causality: output}
   - {name: x, causality: local}
-  - {name: how, type: integer, causality: parameter, start: 0, description: "0 segfault, 1 abort, 2 fatal"}
+  - {name: how, type: integer, causality: parameter, start: 0, description: "0 segv, 1 abort, 2 fatal, 3 spin"}
   - {name: at_init, type: boolean, causality: parameter, start: false}
 """
 CRASHY_C = """
@@ -34,6 +36,7 @@ static int crash(const ModelData *m) {
     fprintf(stderr, "crashy: giving up at t=%g\\n", m->time);
     fflush(stderr);
     if (m->how == 2) { fmu_log(m, MODEL_FATAL, "beyond repair"); return MODEL_FATAL; }
+    if (m->how == 3) { volatile int spin = 1; while (spin) {} }
     if (m->how == 1) abort();
     volatile int *p = 0;
     *p = 42;
@@ -161,6 +164,46 @@ def test_crash_of_an_fmu_without_serializable_state_stops_cleanly(tmp_path):
             w.tick()
         assert w.tick_count == 3
     assert m.pid is None
+
+
+def test_a_hung_fmu_is_killed_after_its_call_timeout_and_the_world_goes_on(crashy):
+    hung = make_fmu_module("c", str(crashy), base_dir=".", params={"how": 3}, targets=[], isolate=True,
+                           call_timeout=0.5)
+    with World(step="1ms") as w:
+        w.add_module(hung)
+        w.set("c.u", 0.25)
+        w.tick(5)
+        y, pid = w.get("c.y"), hung.pid
+        w.set("c.u", 1.0)  # the FMU spins for ever in this step
+        with pytest.raises(FMUTimeoutError) as err:
+            w.tick()
+        e = err.value
+        assert isinstance(e, FMUCrashError) and (e.module, e.tick, e.call) == ("c", 5, "fmi2DoStep")
+        assert "did not answer within 0.5 s" in str(e) and "SIGKILL" in str(e)
+        assert w.tick_count == 5 and w.get("c.y") == y and hung.pid is None
+        w.set("c.u", 0.25)
+        w.tick(2)  # a new process, from the last good tick
+        assert hung.pid not in (None, pid) and w.get("c.y") == pytest.approx(y + 2 * 0.25e-3)
+
+
+def test_call_timeout_is_checked_in_a_scenario(crashy, tmp_path):
+    def scenario(extra: str) -> Path:
+        path = tmp_path / "s.yaml"
+        path.write_text(f"name: s\nworld: {{step: 1ms, core: null}}\nmodules:\n  - name: c\n    fmu: {crashy}\n"
+                        f"{extra}")
+        return path
+
+    world = load_scenario(scenario("    isolate: true\n    call_timeout: 250ms\n")).build()
+    try:
+        assert world.modules["c"].call_timeout == 0.25
+        assert world.modules["c"].scenario_spec()["call_timeout"] == 0.25
+    finally:
+        world.close()
+    for extra, message in (("    call_timeout: 1s\n", "isolate: true"),
+                           ("    isolate: true\n    call_timeout: -1s\n", "positive"),
+                           ("    isolate: true\n    call_timeout: soon\n", "soon")):
+        with pytest.raises(ScenarioError, match=rf"s.yaml:\d+ \[modules\[0\].call_timeout\]: .*{message}"):
+            load_scenario(scenario(extra)).build()
 
 
 def test_crash_during_initialization_refuses_the_module(crashy):

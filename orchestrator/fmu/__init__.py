@@ -15,10 +15,10 @@ from typing import Any
 
 from ..errors import DynabrainError
 from ..module import Module
-from .errors import FMUBuildError, FMUCallError, FMUCrashError, FMUDiscardError, FMUError
+from .errors import FMUBuildError, FMUCallError, FMUCrashError, FMUDiscardError, FMUError, FMUTimeoutError
 
-__all__ = ["FMUBuildError", "FMUCallError", "FMUCrashError", "FMUDiscardError", "FMUError", "load_fmu_info",
-           "make_fmu_module"]
+__all__ = ["FMUBuildError", "FMUCallError", "FMUCrashError", "FMUDiscardError", "FMUError", "FMUTimeoutError",
+           "load_fmu_info", "make_fmu_module"]
 
 
 def load_fmu_info(fmu: str, *, base_dir: str = "."):
@@ -34,15 +34,19 @@ def load_fmu_info(fmu: str, *, base_dir: str = "."):
 
 
 def make_fmu_module(name: str, fmu: str, *, base_dir: str, params: dict[str, Any], targets: list[str],
-                    isolate: bool = False) -> Module:
+                    isolate: bool = False, call_timeout: float | None = None) -> Module:
     """A module for the FMU at ``fmu`` (a ``.fmu`` file or a source folder, relative to ``base_dir``
-    or one of its parent folders). ``isolate``: run it in a process of its own."""
+    or one of its parent folders). ``isolate``: run it in a process of its own; ``call_timeout``
+    (seconds, isolated only): how long one call may take before the process is killed."""
+    if call_timeout is not None and not isolate:
+        raise FMUError(f"module {name!r}: call_timeout applies to an isolated FMU (isolate: true)")
     info = load_fmu_info(fmu, base_dir=base_dir)
     _check_params(name, info, params)
     if isolate:
-        from .isolate import IsolatedFMUModule
+        from .isolate import CALL_TIMEOUT_S, IsolatedFMUModule
 
-        return IsolatedFMUModule(name, info, source=fmu, targets=targets, **params)
+        return IsolatedFMUModule(name, info, source=fmu, targets=targets,
+                                 call_timeout=CALL_TIMEOUT_S if call_timeout is None else call_timeout, **params)
     from .module import FMUModule
 
     return FMUModule(name, info, source=fmu, targets=targets, **params)

@@ -41,3 +41,8 @@ class FMUDiscardError(FMUCallError):
 class FMUCrashError(ModuleError):
     """The process running an isolated FMU died (a segfault, an abort). The world rolls back to the
     last good tick; the next step restarts the FMU from that tick's state."""
+
+
+class FMUTimeoutError(FMUCrashError):
+    """An isolated FMU did not answer a call within its ``call_timeout`` (an endless loop, a deadlock):
+    its process is killed, and the world goes on as after a crash."""

@@ -32,13 +32,15 @@ import numpy as np
 from ..errors import DynabrainError
 from ..module import Capabilities, SetupContext
 from . import errors as fmu_errors
-from .errors import FMUCrashError, FMUError
+from .errors import FMUCrashError, FMUError, FMUTimeoutError
 from .info import FmuInfo
 from .module import FMUModuleBase
 from .states import SerializedFMUState
 from .worker import TRACE_SIZE
 
 STOP_TIMEOUT_S = 5.0
+CALL_TIMEOUT_S = 30.0
+"""How long one call of an isolated FMU may take by default (``call_timeout`` in a scenario)."""
 
 
 class _Child:
@@ -119,8 +121,13 @@ class _Child:
 class IsolatedFMUModule(FMUModuleBase):
     """An FMU module whose FMU runs in a child process. See the module docstring."""
 
-    def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (), **params: Any):
+    def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (),
+                 call_timeout: float = CALL_TIMEOUT_S, **params: Any):
         super().__init__(name, info, source=source, targets=targets, **params)
+        if not call_timeout > 0:
+            raise FMUError(f"module {name!r}: call_timeout must be a positive duration, got {call_timeout!r}")
+        self.call_timeout = float(call_timeout)
+        """Seconds one call (a step, a state transfer) may take before the process is killed."""
         self._child: _Child | None = None
         self._state: SerializedFMUState | None = None
         self._pending: SerializedFMUState | None = None
@@ -152,6 +159,8 @@ class IsolatedFMUModule(FMUModuleBase):
             raise FMUCrashError(self.name, op, None, self._lost or "the FMU process is not running")
         try:
             child.conn.send((op, *args))
+            if not child.conn.poll(self.call_timeout):
+                raise self._hung(op)
             reply = child.conn.recv()
         except (EOFError, OSError) as exc:
             raise self._crashed(op, exc) from None
@@ -178,6 +187,23 @@ class IsolatedFMUModule(FMUModuleBase):
                           "so it cannot be brought back")
         return FMUCrashError(self.name, call or op, None, f"the isolated FMU process died {during} ({op}): {how}; "
                              f"{self.info.label}")
+
+    def _hung(self, op: str) -> FMUTimeoutError:
+        """The child did not answer in time: kill it; the next step starts a new one from the last good
+        state, as after a crash."""
+        child = self._child
+        call = child.call_in_progress()
+        child.proc.kill()
+        how = child.death()
+        self._child = None
+        child.cleanup()
+        self._pending = self._state
+        if self._state is None:
+            self._lost = (f"the FMU process was killed earlier (no answer within {self.call_timeout:g} s) and "
+                          f"{self.info.label} cannot serialize its state, so it cannot be brought back")
+        return FMUTimeoutError(self.name, call or op, None, f"the isolated FMU did not answer within "
+                               f"{self.call_timeout:g} s ({'in ' + call if call else op}); its process was "
+                               f"killed ({how}); {self.info.label}")
 
     def _drop_child(self) -> None:
         child, self._child = self._child, None
@@ -264,7 +290,10 @@ class IsolatedFMUModule(FMUModuleBase):
             child.stop()
 
     def scenario_spec(self) -> dict[str, Any]:
-        return {**super().scenario_spec(), "isolate": True}
+        spec = {**super().scenario_spec(), "isolate": True}
+        if self.call_timeout != CALL_TIMEOUT_S:
+            spec["call_timeout"] = self.call_timeout
+        return spec
 
     @property
     def pid(self) -> int | None:
@@ -273,7 +302,8 @@ class IsolatedFMUModule(FMUModuleBase):
 
     def __deepcopy__(self, memo: dict[int, Any]) -> IsolatedFMUModule:
         """A fork: a new process, initialized and set to this module's state."""
-        clone = IsolatedFMUModule(self.name, self.info, source=self.source, targets=self.targets)
+        clone = IsolatedFMUModule(self.name, self.info, source=self.source, targets=self.targets,
+                                  call_timeout=self.call_timeout)
         clone._param_values = self._param_values
         clone._t0_ns, clone._started = self._t0_ns, self._started
         memo[id(self)] = clone
