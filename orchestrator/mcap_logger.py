@@ -15,32 +15,32 @@ it. A rollback that reaches further back than the window finds ticks already wri
 then rewritten on close (`mcap_recover.rewrite`) so that those, too, move to ``/discarded/...``.
 ``dynabrain run`` cannot roll back (except a failed tick, which discards nothing), so it uses no window.
 
-**Crash safety.** A kill loses the ticks still waiting (the ``window``, plus at most ``batch`` ticks or
-``flush_s / 2`` seconds of them), the jobs handed to the writer's thread and not done yet (at most
-`mcap_write.QUEUE_DEPTH`, done within milliseconds unless the machine is overloaded) and the chunk
-being filled (at most ``chunk_bytes`` of messages, or ``flush_s`` seconds of them); `dynabrain log
-recover` turns what is left into a valid file. With the defaults and no window (``dynabrain run``), a
-run at real time loses under half a second.
+**Crash safety.** The file is written by a child process (`mcap_sink`). If the simulation's process
+is killed, the child writes everything it was handed and finishes the file: only the ticks still
+waiting in the simulation's process are lost (the ``window``, plus at most ``batch`` ticks or
+``flush_s / 2`` seconds of them). If both die, the chunk being filled is lost too (at most
+``chunk_bytes`` of messages, or ``flush_s`` seconds of them), and `dynabrain log recover` turns what is
+left into a valid file. With the defaults and no window (``dynabrain run``), a run at real time loses
+under half a second either way.
 
-**Cost.** The stepping thread copies the bus row into a preallocated block (rows of consecutive ticks
-of one layout and epoch: a row's tick is its block's first tick plus its index, so a tick makes no
-Python object) and, every ``batch`` ticks, hands the oldest rows to the writer's thread in one job.
-That thread encodes them (a few numpy operations per channel and batch: poses are taken from the
-bus's ``<core>.<body>.pos`` / ``.quat`` columns), compresses and writes; numpy and zstd release the
-GIL on large buffers, so it runs on a second core. Every writer call (schemas, channels, events)
-goes through that thread too, so the file holds the records in the order they were made. Figures:
-``bench/logging_cost.py``.
+**Cost.** The stepping thread copies the bus row into a preallocated block of shared memory (rows of
+consecutive ticks of one layout and epoch: a row's tick is its block's first tick plus its index, so
+a tick makes no Python object) and, every ``batch`` ticks, tells the child writer which rows to take.
+The child encodes them (a few numpy operations per channel and batch: poses are taken from the bus's
+``<core>.<body>.pos`` / ``.quat`` columns), compresses and writes, on a core of its own and under an
+interpreter lock of its own. Every writer call (schemas, channels, events) goes to the child the same
+way, so the file holds the records in the order they were made. ``writer="thread"`` keeps the writer
+in this process instead (on a thread; no child process, but encoding then competes with the
+simulation for the interpreter lock). Figures: ``bench/logging_cost.py``.
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
 import time
 from collections import deque
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -50,27 +50,16 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from .errors import DynabrainError
 from .mcap_meta import run_metadata
 from .mcap_scene import SceneDrawing
-from .mcap_schema import (
-    DISCARDED,
-    EVENT_SCHEMA,
-    METADATA_NAME,
-    TOPIC_BUS,
-    TOPIC_EVENTS,
-    TOPIC_SCENE,
-    TOPIC_TF,
-    BusCodec,
-    FieldNumbers,
-    PoseCodec,
-    event_bytes,
-    foxglove_descriptor,
-    pose_columns,
-)
-from .mcap_write import McapWriter
+from .mcap_schema import METADATA_NAME, BusCodec, FieldNumbers, event_bytes, foxglove_descriptor, pose_columns
+from .mcap_sink import ProcessSink, ThreadSink
 from .observers import Observer, WorldEvent, WorldView
 
 _log = logging.getLogger("dynabrain.mcap")
 BLOCK_BYTES = 2 << 20
 """Bus rows a block holds at most (bytes; and at most ``batch`` rows)."""
+MAX_BLOCKS = 24
+"""Blocks of rows per bus layout at most (48 MiB): when the writer is that far behind, the stepping
+thread waits for it."""
 
 
 class _Block:
@@ -79,12 +68,21 @@ class _Block:
     rollback. A block takes no more rows once ``sealed``; the writer hands it back to its pool after
     writing its last rows (``pool``)."""
 
-    __slots__ = ("codec", "cut", "epoch", "extra", "first", "n", "pool", "rows", "scenes", "sealed", "sent")
+    __slots__ = ("codec", "cut", "epoch", "extra", "first", "n", "pool", "rows", "scenes", "sealed", "sent",
+                 "shared_extra", "shared_rows")
 
-    def __init__(self, codec: BusCodec, capacity: int, extra: int, pool: deque):
+    def __init__(self, codec: BusCodec, capacity: int, extra: int, pool: deque, sink: ThreadSink | ProcessSink):
         self.codec, self.pool = codec, pool
-        self.rows = np.empty((capacity, codec.size))
-        self.extra = np.empty((capacity, extra)) if extra else None
+        self.shared_rows = self.shared_extra = None
+        if sink.shared:  # the child writer maps the same memory
+            self.shared_rows = sink.shared_rows((capacity, codec.size))
+            self.rows = self.shared_rows.array
+            if extra:
+                self.shared_extra = sink.shared_rows((capacity, extra))
+            self.extra = self.shared_extra.array if extra else None
+        else:
+            self.rows = np.empty((capacity, codec.size))
+            self.extra = np.empty((capacity, extra)) if extra else None
         self.scenes: list[tuple[int, bytes]] = []
 
     def start(self, first: int, epoch: int) -> _Block:
@@ -99,22 +97,26 @@ class McapLogger(Observer):
     ``decimate``: poses every that many ticks; ``scene_every``: the scene every that many ticks
     (default: one simulated second) and after each `make`; ``window``: ticks held back for rollbacks;
     ``batch``: ticks encoded and written together (at most ``flush_s / 2`` s after the first is due);
-    ``chunk_bytes``, ``flush_s``, ``level``: chunk size and age, zstd level.
+    ``chunk_bytes``, ``flush_s``, ``level``: chunk size and age, zstd level; ``writer``: ``"process"``
+    (a child process writes the file; the default) or ``"thread"`` (a thread of this process).
     """
 
     def __init__(self, path: str | os.PathLike[str], *, decimate: int = 1, scene_every: int | None = None,
                  window: int = 64, batch: int = 256, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
-                 level: int = 1):
+                 level: int = 1, writer: str = "process"):
         for name, value, low in (("decimate", decimate, 1), ("window", window, 0), ("batch", batch, 1),
                                  ("scene_every", scene_every or 1, 1), ("chunk_bytes", chunk_bytes, 1)):
             if not isinstance(value, int) or value < low:
                 raise DynabrainError(f"McapLogger: {name} must be an integer >= {low}, got {value!r}")
+        if writer not in ("process", "thread"):
+            raise DynabrainError(f"McapLogger: writer must be 'process' or 'thread', got {writer!r}")
         self.path = os.fspath(path)
+        self.writer = writer
         self.decimate, self.scene_every, self.window, self.batch = decimate, scene_every, window, batch
         self._writer_args = {"chunk_bytes": chunk_bytes, "flush_s": flush_s, "level": level}
         self._max_wait = flush_s / 2
         self._drained_at = time.monotonic()
-        self._writer: McapWriter | None = None
+        self._sink: ThreadSink | ProcessSink | None = None
         self._pending: deque[_Block] = deque()  # blocks with rows not handed to the writer yet, oldest first
         self._waiting = 0  # rows of ``_pending`` not handed to the writer
         self._block: _Block | None = None  # the block taking rows (None: the next row starts one)
@@ -122,7 +124,6 @@ class McapLogger(Observer):
         self._pools: dict[int, deque[_Block]] = {}
         self._numbers = FieldNumbers()
         self._codecs: dict[tuple, BusCodec] = {}
-        self._channels: dict[tuple[str, int], int] = {}  # used on the writer's thread only
         self._pose_index: dict[int, tuple[np.ndarray, list[str]]] = {}
         self._codec: BusCodec | None = None
         self._missing: list[str] = []
@@ -130,14 +131,14 @@ class McapLogger(Observer):
         self._seq = 0
         self._dirty = True
         self._scene: SceneDrawing | None = None
-        self._poses: PoseCodec | None = None
+        self._bodies: list[str] | None = None
+        self._made: dict[int, int] = {}  # blocks made per layout
         self._next_scene = 0
         self._written_max = -1
         self._compact = False
         self._restoring = False
         self._restored_snapshot: int | None = None
         self._failing: int | None = None
-        self._schema_ids: dict[int | str, int] = {}
         self._lock: Any = None
         self._world: Any = None
         self.closed = False
@@ -150,19 +151,20 @@ class McapLogger(Observer):
             self._world, self._lock, self._dt = world, world.lock(), world.dt_ns
             if self.scene_every is None:
                 self.scene_every = max(1, round(1e9 / self._dt))
-            self._writer = McapWriter(self.path, profile="dynabrain", **self._writer_args)
+            if view.core is not None:
+                self._scene = SceneDrawing(view.core)
+                self._bodies = list(view.core.bodies())
+            descriptors = {cls.DESCRIPTOR.full_name: foxglove_descriptor(cls) for cls in (FrameTransforms, SceneUpdate)}
+            sink = ProcessSink if self.writer == "process" else ThreadSink
+            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors)
             try:
                 settings = {"decimate": self.decimate, "scene_every": self.scene_every, "window": self.window,
-                            "batch": self.batch, **self._writer_args}
-                self._writer.add_metadata(METADATA_NAME, run_metadata(world, scenario, settings))
-                self._run(lambda: self._channel(TOPIC_EVENTS, lambda: self._json_channel(TOPIC_EVENTS)))
-                if view.core is not None:
-                    self._scene = SceneDrawing(view.core)
-                    self._poses = PoseCodec(view.core.bodies())
+                            "batch": self.batch, "writer": self.writer, **self._writer_args}
+                self._sink.call("metadata", METADATA_NAME, run_metadata(world, scenario, settings))
                 self._refresh_layout(view)
                 self._push(view, view.bus())
             except BaseException:
-                self._writer.close()
+                self._sink.abort()
                 raise
             world.observe(self)
         return self
@@ -247,7 +249,7 @@ class McapLogger(Observer):
     def close(self) -> None:
         """Write what is waiting, the summary and the footer; rewrite the file if a rollback reached
         ticks already written (see the module docstring). Idempotent."""
-        if self.closed or self._writer is None:
+        if self.closed or self._sink is None:
             return
         with self._lock:
             self.closed = True
@@ -256,7 +258,7 @@ class McapLogger(Observer):
             try:
                 self._drain(self._waiting)
             finally:
-                self._writer.finish()
+                self._sink.finish()
         if self._compact:
             from .mcap_recover import rewrite
 
@@ -266,10 +268,11 @@ class McapLogger(Observer):
 
     @property
     def stats(self) -> dict[str, float]:
-        w = self._writer
-        return {"messages": w.messages if w else 0, "chunks": w.chunks if w else 0,
-                "bytes": w.bytes_written if w else 0, "epoch": self._epoch,
-                "writer_cpu_s": w.thread_cpu_s if w else 0.0}
+        """What was written (messages, chunks, bytes; complete once closed), the rollback epoch, and the
+        writer's CPU time (the child process's, or the writer thread's)."""
+        done = self._sink.stats if self._sink is not None else {"messages": 0, "chunks": 0, "bytes": 0,
+                                                                 "writer_cpu_s": 0.0}
+        return {**done, "epoch": self._epoch}
 
     # -- the stepping thread: rows into blocks ----------------------------------------------------------
     def _push(self, view: WorldView, bus: np.ndarray) -> None:
@@ -297,11 +300,16 @@ class McapLogger(Observer):
         pool = self._pools.get(codec.key)
         if pool is None:
             pool = self._pools[codec.key] = deque()
+        sink = self._sink
+        sink.poll()
+        while not pool and self._made.get(codec.key, 0) >= MAX_BLOCKS:  # the writer is behind: wait for it
+            sink.wait()
         try:
             block = pool.popleft()
         except IndexError:
             capacity = max(1, min(self.batch, BLOCK_BYTES // (8 * codec.size)))
-            block = _Block(codec, capacity, 7 * len(self._missing), pool)
+            block = _Block(codec, capacity, 7 * len(self._missing), pool, sink)
+            self._made[codec.key] = self._made.get(codec.key, 0) + 1
         self._block = block.start(tick, self._epoch)
         self._pending.append(block)
         return block
@@ -317,7 +325,7 @@ class McapLogger(Observer):
             if block.n == 0:
                 block.pool.append(block)
             else:
-                self._run(lambda: block.pool.append(block))
+                self._sink.release(block)
 
     def _discard_after(self, last: int) -> None:
         """Mark the waiting rows of ticks after ``last`` discarded (newest first, as the rule says)."""
@@ -339,7 +347,8 @@ class McapLogger(Observer):
         if codec is None:
             codec = BusCodec.from_view(slots, size, self._numbers, len(self._codecs) + 1)
             self._codecs[signature] = codec
-            self._pose_index[codec.key] = self._pose_plan(view, codec)
+            cols, missing = self._pose_index[codec.key] = self._pose_plan(view, codec)
+            self._sink.call("layout", codec.key, codec.metadata(), cols, missing)
             detail: dict[str, Any] = {"layout": codec.key, "signals": len(codec.slots), "values": size}
             if self._codec is not None:
                 detail["added"] = sorted(set(codec.by_name) - set(self._codec.by_name))
@@ -350,9 +359,9 @@ class McapLogger(Observer):
         self._dirty = False
 
     def _pose_plan(self, view: WorldView, codec: BusCodec) -> tuple[np.ndarray, list[str]]:
-        if self._poses is None:
+        if self._bodies is None:
             return np.zeros((0, 7), dtype=np.intp), []
-        return pose_columns(view.core.name, self._poses.bodies, codec)
+        return pose_columns(view.core.name, self._bodies, codec)
 
     def _drain(self, n: int) -> None:
         """Hand the ``n`` oldest waiting rows to the writer's thread, in one job."""
@@ -376,88 +385,10 @@ class McapLogger(Observer):
             self._pending.popleft()
             parts.append((block, 0, 0, None))  # its last rows are written: back to its pool
         if parts:
-            self._run(lambda: self._write_parts(parts))
-
-    # -- the writer's thread: encoding ------------------------------------------------------------------
-    def _write_parts(self, parts: list[tuple[_Block, int, int, bool | None]]) -> None:
-        for block, lo, hi, discarded in parts:
-            if discarded is None:
-                block.pool.append(block)
-            else:
-                self._write(block, lo, hi, discarded)
-
-    def _write(self, block: _Block, lo: int, hi: int, discarded: bool) -> None:
-        """Encode rows ``lo:hi`` of a block (one layout, epoch and fate) straight into the chunk."""
-        codec, prefix = block.codec, DISCARDED if discarded else ""
-        ticks = np.arange(block.first + lo, block.first + hi, dtype=np.int64)
-        epochs = np.full(hi - lo, block.epoch, dtype=np.int64)
-        rows = block.rows[lo:hi]
-        t_ns = ticks * self._dt
-        w, dt = self._writer, self._dt
-
-        def bus(out: np.ndarray, part: slice) -> None:
-            codec.encode(rows[part], ticks[part], epochs[part], dt, out=out)
-
-        w.add_encoded(self._bus_channel(codec, prefix), t_ns, epochs, codec.length, bus)
-        if self._poses is None:
-            return
-        due = np.flatnonzero(ticks % self.decimate == 0)
-        if len(due):
-            cols, missing = self._pose_index[codec.key]
-            ext = rows if len(due) == len(rows) else rows[due]
-            if missing:
-                ext = np.concatenate([ext, block.extra[lo:hi][due]], axis=1)
-            pose, times = ext[:, cols], t_ns[due]
-
-            def poses(out: np.ndarray, part: slice) -> None:
-                self._poses.encode(pose[part, :, :3], pose[part, :, 3:], times[part], out=out)
-
-            w.add_encoded(self._proto_channel(prefix + TOPIC_TF, FrameTransforms), times, epochs[due],
-                          self._poses.length, poses)
-        for row, scene in block.scenes:
-            if lo <= row < hi:
-                w.add_message(self._proto_channel(prefix + TOPIC_SCENE, SceneUpdate), (block.first + row) * dt,
-                              scene, block.epoch)
+            self._sink.rows(parts)
 
     def _event(self, kind: str, tick: int, detail: dict, source: str) -> None:
         self._seq += 1
         body = {"seq": self._seq, "tick": tick, "time": tick * self._dt / 1e9, "epoch": self._epoch, "kind": kind,
                 "source": source, "detail": detail}
-        data, epoch, w = event_bytes(body), self._epoch, self._writer
-        self._run(lambda: w.add_message(self._channels[(TOPIC_EVENTS, 0)], tick * self._dt, data, epoch))
-
-    def _run(self, job: Callable[[], None]) -> None:
-        """Every writer call goes through the writer's thread, in order (see the module docstring)."""
-        self._writer.call(job)
-
-    # -- channels (on the writer's thread) ----------------------------------------------------------------
-    def _channel(self, topic: str, make, key: int = 0) -> int:
-        cid = self._channels.get((topic, key))
-        if cid is None:
-            cid = self._channels[(topic, key)] = make()
-        return cid
-
-    def _json_channel(self, topic: str) -> int:
-        sid = self._writer.add_schema("dynabrain.Event", "jsonschema", json.dumps(EVENT_SCHEMA).encode())
-        return self._writer.add_channel(topic, "json", sid)
-
-    def _bus_channel(self, codec: BusCodec, prefix: str) -> int:
-        def make() -> int:
-            sid = self._schema_ids.get(codec.key)
-            if sid is None:
-                sid = self._schema_ids[codec.key] = self._writer.add_schema(codec.schema_name, "protobuf",
-                                                                           codec.descriptor())
-            return self._writer.add_channel(prefix + TOPIC_BUS, "protobuf", sid, codec.metadata())
-
-        return self._channel(prefix + TOPIC_BUS, make, codec.key)
-
-    def _proto_channel(self, topic: str, message_class: type) -> int:
-        def make() -> int:
-            name = message_class.DESCRIPTOR.full_name
-            sid = self._schema_ids.get(name)
-            if sid is None:
-                sid = self._schema_ids[name] = self._writer.add_schema(name, "protobuf",
-                                                                      foxglove_descriptor(message_class))
-            return self._writer.add_channel(topic, "protobuf", sid)
-
-        return self._channel(topic, make)
+        self._sink.call("event", tick * self._dt, event_bytes(body), self._epoch)

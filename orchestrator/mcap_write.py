@@ -134,6 +134,16 @@ class McapWriter:
                                         daemon=True)
         self._thread.start()
 
+    def warm_up(self) -> None:
+        """Make every chunk buffer now and touch its memory, and let the compressor allocate its
+        tables: a fresh process then pays for none of it while a run is being written."""
+        while self._made < QUEUE_DEPTH + 2:
+            self._made += 1
+            self._spare.put(_Chunk(2 * self.chunk_bytes))
+        for chunk in [self._chunk, *self._spare.queue]:
+            chunk.buf[chunk.pos:].fill(0)  # (records already in the chunk stay)
+        self._zstd.compress(bytes(self.chunk_bytes))
+
     def call(self, job: Callable[[], None]) -> None:
         """Run ``job`` on the writing thread after everything handed to it before. Writer calls made
         inside it run there too (a chunk it finishes is compressed there). A job that raises stops the
@@ -315,6 +325,10 @@ class McapWriter:
             finally:
                 self.thread_cpu_s += time.thread_time() - t0
                 self._jobs.task_done()
+
+    def check(self) -> None:
+        """Raise the error that stopped the writing thread, if one did (as a `DynabrainError`)."""
+        self._check()
 
     def _check(self) -> None:
         exc = self._error

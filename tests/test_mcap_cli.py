@@ -114,36 +114,69 @@ def test_a_recording_whose_scenario_no_longer_loads(tmp_path):
     assert "drop.yaml (as recorded in" in flat
 
 
-def test_a_run_killed_with_sigkill_is_recovered(tmp_path):
-    path = tmp_path / "killed.mcap"
+def _run_until_killed(path: Path, whole_group: bool) -> None:
+    """`dynabrain run --log` until the log holds 400 kB, then SIGKILL: the simulation's process alone,
+    or it and its writer process together (as a terminal's kill of the process group would)."""
     proc = subprocess.Popen([sys.executable, "-m", "dynabrain.orchestrator.cli", "run",
                              str(SCENARIOS / "two_cubes.yaml"), "--log", str(path), "--duration", "600s", "-q"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
         while (not path.exists() or path.stat().st_size < 400_000) and time.monotonic() < deadline:
             assert proc.poll() is None, proc.stderr.read().decode()
             time.sleep(0.05)
-        os.kill(proc.pid, signal.SIGKILL)
+        if whole_group:
+            os.killpg(proc.pid, signal.SIGKILL)
+        else:
+            os.kill(proc.pid, signal.SIGKILL)
     finally:
         proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGKILL and path.stat().st_size >= 400_000
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:  # the writer process, if alive, finishes the file and ends
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    else:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise AssertionError("the log writer process did not end")
+
+
+def _assert_the_run(path: Path) -> None:
+    """What a log holds is the run from tick 0 on, and it re-simulates bit for bit."""
+    for _ in StreamReader(open(path, "rb"), validate_crcs=True).records:  # noqa: SIM115
+        pass
+    with open(path, "rb") as fh:
+        stats = make_reader(fh).get_summary().statistics
+    index = read_index(path)
+    ticks = sorted(t for _e, t, _p in index.keys["/bus"])
+    assert ticks == list(range(len(ticks))) and len(ticks) > 1000
+    assert stats.message_count == sum(index.counts.values()) and index.info.scenario_name == "two_cubes"
+    result = verify(path)
+    assert result.ok and result.last_tick == ticks[-1]
+
+
+def test_a_killed_simulation_leaves_a_complete_log(tmp_path):
+    """The writer process outlives the simulation's: it writes what it was handed and the summary."""
+    path = tmp_path / "killed.mcap"
+    _run_until_killed(path, whole_group=False)
+    code, out = dyn("replay", path)
+    assert code == 0, out
+    _assert_the_run(path)
+
+
+def test_a_run_killed_with_its_writer_is_recovered(tmp_path):
+    path = tmp_path / "killed.mcap"
+    _run_until_killed(path, whole_group=True)
     code, out = dyn("replay", path)
     assert code == 2 and "truncated" in out
     code, out = dyn("log", "recover", path)
     assert code == 0, out
     recovered = tmp_path / "killed.recovered.mcap"
     assert f"wrote {recovered}" in " ".join(out.split())
-    for _ in StreamReader(open(recovered, "rb"), validate_crcs=True).records:  # noqa: SIM115
-        pass
-    with open(recovered, "rb") as fh:
-        stats = make_reader(fh).get_summary().statistics
-    index = read_index(recovered)
-    ticks = sorted(t for _e, t, _p in index.keys["/bus"])
-    assert ticks == list(range(len(ticks))) and len(ticks) > 1000
-    assert stats.message_count == sum(index.counts.values()) and index.info.scenario_name == "two_cubes"
-    result = verify(recovered)  # what was kept is the run, and it re-simulates bit for bit
-    assert result.ok and result.last_tick == ticks[-1]
+    _assert_the_run(recovered)
 
 
 def test_the_scenario_log_setting_and_a_world_without_a_core(tmp_path):

@@ -15,7 +15,7 @@ from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
 from dynabrain.modules.basic import Noise, Sine
-from dynabrain.orchestrator import mcap_logger
+from dynabrain.orchestrator import mcap_logger, mcap_sink
 from dynabrain.orchestrator.errors import DynabrainError
 from dynabrain.orchestrator.mcap_logger import McapLogger
 from dynabrain.orchestrator.mcap_read import final_mask, iter_bus, read_index
@@ -267,13 +267,27 @@ def test_small_blocks_and_uneven_windows_keep_every_tick_in_order(tmp_path, monk
 
 
 def test_a_failure_on_the_writers_thread_reaches_the_caller(tmp_path, monkeypatch, caplog):
-    world, _path = record(tmp_path, window=0, batch=4)
+    world, _path = record(tmp_path, window=0, batch=4, writer="thread")
 
     def broken(*_args):
         raise OSError("disk on fire")
 
-    monkeypatch.setattr(mcap_logger.McapLogger, "_write_parts", broken)
+    monkeypatch.setattr(mcap_sink.LogSink, "rows", broken)
     with pytest.raises(DynabrainError, match=r"writing the log .*OSError: disk on fire"):
         world.tick(40)  # the batch fails on the writer's thread; the next hand-over reports it
     world.close()       # the world keeps closing; the log says why the file is incomplete
     assert "closing the MCAP log" in caplog.text and "disk on fire" in caplog.text
+
+
+def test_the_loss_of_the_writer_process_reaches_the_caller(tmp_path, caplog):
+    sc = load_scenario(SCENARIOS / "two_cubes.yaml")
+    world = sc.build()
+    logger = McapLogger(tmp_path / "run.mcap", window=0, batch=4).attach(world, sc)
+    world.tick(10)
+    logger._sink._proc.kill()  # the child writer dies (killed, out of memory, ...)
+    logger._sink._proc.wait()
+    with pytest.raises(DynabrainError, match=r"the log writer process for .*run.mcap (is gone|ended).*signal 9"):
+        world.tick(40)
+    assert world.tick_count >= 10  # the simulation itself is fine
+    world.close()
+    assert "closing the MCAP log" in caplog.text
