@@ -8,27 +8,29 @@ from typing import Any
 import numpy as np
 
 from .errors import RollbackError
-from .structure import Structure
+from .structure import UNRESTORABLE, Structure
 
 
 class WorldState:
     """Everything that changes while a world runs, at one tick.
 
-    ``states[i]`` belongs to ``structure.records[i]``: a pair (parameter values, module state), or
-    None for a module that cannot roll back. The parameter dicts are copy-on-write, so keeping them
-    costs a reference. ``world_id`` ties a snapshot to the world (and module objects) it came from.
+    ``states[i]`` is the state of ``structure.records[i]``'s module (`UNRESTORABLE` for a module that
+    cannot roll back) and ``params[i]`` its parameter values. The parameter dicts are copy-on-write,
+    and consecutive states share one tuple of them until a parameter changes, so keeping them costs
+    a reference. ``world_id`` ties a snapshot to the world (and module objects) it came from.
     """
 
-    __slots__ = ("bus", "id", "states", "structure", "tick", "world_id")
+    __slots__ = ("bus", "id", "params", "states", "structure", "tick", "world_id")
 
-    def __init__(self, world_id: int, tick: int, structure: Structure, bus: np.ndarray,
-                 states: tuple[tuple[dict, Any] | None, ...], id: int = 0):
+    def __init__(self, world_id: int, tick: int, structure: Structure, bus: np.ndarray, states: tuple[Any, ...],
+                 params: tuple[dict[str, Any], ...], id: int = 0):
         # a plain class with slots: one is made every tick, and a frozen dataclass costs ~1 us more
         self.world_id = world_id
         self.tick = tick
         self.structure = structure
         self.bus = bus
         self.states = states
+        self.params = params
         self.id = id
         """A snapshot's number within its world (1, 2, ...); 0 for history entries."""
 
@@ -40,7 +42,7 @@ class WorldState:
         return self.bus.nbytes + sum(_size(s) for s in self.states)
 
     def unrestorable(self) -> list[str]:
-        return [rec.name for rec, st in zip(self.structure.records, self.states, strict=True) if st is None]
+        return [rec.name for rec, st in zip(self.structure.records, self.states, strict=True) if st is UNRESTORABLE]
 
 
 def _size(value: Any) -> int:

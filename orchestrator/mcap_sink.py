@@ -302,12 +302,15 @@ class ProcessSink:
         self._shared: list[SharedRows] = []
         self._error: str | None = None
         self._stats: dict[str, float] = {}
-        self._send(("open", path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
-                    dict(descriptors)))
-        reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
-        if reply[0] != "ready":
+        try:
+            self._send(("open", path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
+                        dict(descriptors)))
+            reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
+            if reply[0] != "ready":
+                raise DynabrainError(reply[1])
+        except BaseException:
             self._end()
-            raise DynabrainError(reply[1])
+            raise
 
     def shared_rows(self, shape: tuple[int, ...]) -> SharedRows:
         rows = SharedRows(shape)

@@ -54,6 +54,10 @@ if TYPE_CHECKING:
     from .core import PhysicsCore
 
 
+PARAM_CHANGES = [0]
+"""Counts every replacement of a module's parameter dict (`Module.set_param`, a rollback's restore):
+history keeps the dicts of all modules as one tuple and builds a new one only after a change."""
+
 NO_PORTS = np.zeros(0)  # what `Module.inp_flat` and `out_flat` are while a module is not bound
 NO_PORTS.setflags(write=False)
 
@@ -238,6 +242,7 @@ class Module:
         updated = dict(self._param_values)  # copy-on-write: history keeps the old dict
         updated[name] = converted
         self._param_values = updated
+        PARAM_CHANGES[0] += 1
         self.on_param(name, converted)
 
     def _restore_params(self, values: dict[str, Any]) -> None:
@@ -245,6 +250,7 @@ class Module:
             return
         old = self._param_values
         self._param_values = values
+        PARAM_CHANGES[0] += 1
         for key, value in values.items():
             if old.get(key) is not value:
                 self.on_param(key, value)

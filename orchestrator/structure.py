@@ -18,7 +18,8 @@ cycle; a cycle is an algebraic loop and is reported with its path.
 from __future__ import annotations
 
 import heapq
-from collections.abc import Iterable, Sequence
+import itertools
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -135,12 +136,10 @@ class Structure:
     delayed_gather: Copies = ()
     """Copies made on the bus array rather than on its memoryview: one pair of index arrays, when a
     set of connections has too many separate runs (``delayed`` is then empty)."""
-    capture: tuple[tuple[Module | None, object], ...] = ()
-    """What history saves each tick, per record in record order: (module, its bound ``get_state``)
-    for a module with state, (module, NoneType) for one with only parameters, (None, None) for one
-    that cannot roll back."""
-    all_restorable: bool = True
-    """No module is `SAVE_NONE` (the capture needs no test per module)."""
+    capture: tuple[Callable[[], object], ...] = ()
+    """What history saves each tick, per record in record order: a no-argument callable giving the
+    module's state: its bound ``get_state``; NoneType for a module with only parameters (calling it
+    gives None, in C); for one that cannot roll back, one that gives `UNRESTORABLE`."""
 
     def record(self, name: str) -> ModuleRecord | None:
         for rec in self.records:
@@ -183,12 +182,22 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
     dispatch = tuple((st.record.name, st.record.module.step, st.record.period_ns, st.record.period_ticks,
                       st.record.phase, *_split_gather(st.copies)) for st in plan)
     delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
-    # (module, a no-argument callable giving its state): a module with no state of its own gets
-    # NoneType (calling it gives None, in C); a module that cannot roll back gets (None, None)
-    capture = tuple((None, None) if how == SAVE_NONE else (m, m.get_state if how == SAVE_STATE else type(None))
+    capture = tuple(_unrestorable if how == SAVE_NONE else m.get_state if how == SAVE_STATE else type(None)
                     for m, how in savers)
-    return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather,
-                     capture, all(how != SAVE_NONE for _, how in savers))
+    return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather, capture)
+
+
+class _Unrestorable:
+    def __repr__(self) -> str:
+        return "UNRESTORABLE"
+
+    def __reduce__(self) -> str:
+        return "UNRESTORABLE"  # pickled and copied as this very object
+
+
+UNRESTORABLE = _Unrestorable()
+"""What history holds for the state of a module that cannot roll back."""
+_unrestorable = itertools.repeat(UNRESTORABLE).__next__
 
 
 SAVE_NONE, SAVE_PARAMS, SAVE_STATE = 0, 1, 2

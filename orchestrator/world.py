@@ -29,9 +29,9 @@ import numpy as np
 from .core import PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
-from .module import NO_PORTS, Module, Port, SetupContext
+from .module import NO_PORTS, PARAM_CHANGES, Module, Port, SetupContext
 from .observers import Observer, WorldEvent, WorldView
-from .structure import BusLayout, Connection, ModuleRecord, Structure, build_structure, split_signal
+from .structure import UNRESTORABLE, BusLayout, Connection, ModuleRecord, Structure, build_structure, split_signal
 from .suggest import did_you_mean
 from .units import NS_PER_S, format_duration, parse_duration_ns
 
@@ -51,6 +51,9 @@ class World:
         self._lock = threading.RLock()
         self._history = History(history)
         self._structure = build_structure((), ())
+        self._params: tuple[dict[str, Any], ...] = ()  # every module's parameter dict, shared by states
+        self._params_of: Structure | None = None  # ... for this structure
+        self._params_seen = -1  # ... as of this count of `PARAM_CHANGES`
         self._buf = np.zeros(0)
         self._mv = memoryview(self._buf)  # the bus again: the tick's copies are cheaper on it
         self._ro = _read_only(self._buf)  # and read-only, for observers
@@ -210,21 +213,20 @@ class World:
     # -- state ----------------------------------------------------------------------------------------
     def _capture(self) -> WorldState:
         structure = self._structure
-        if structure.all_restorable:
-            states = tuple([(m._param_values, get()) for m, get in structure.capture])
-        else:
-            states = tuple([(m._param_values, get()) if m is not None else None for m, get in structure.capture])
-        return WorldState(self._id, self._tick, structure, self._buf.copy(), states)
+        if self._params_of is not structure or self._params_seen != PARAM_CHANGES[0]:
+            self._params = tuple([rec.module._param_values for rec in structure.records])
+            self._params_of, self._params_seen = structure, PARAM_CHANGES[0]
+        states = tuple([get() for get in structure.capture])
+        return WorldState(self._id, self._tick, structure, self._buf.copy(), states, self._params)
 
     def _apply(self, state: WorldState) -> None:
         if state.structure is not self._structure:
             self._install(state.structure, carry_values=False)
         np.copyto(self._buf, state.bus)
-        for rec, saved in zip(state.structure.records, state.states, strict=True):
-            if saved is not None:
-                params, module_state = saved
+        for rec, saved, params in zip(state.structure.records, state.states, state.params, strict=True):
+            if saved is not UNRESTORABLE:
                 rec.module._restore_params(params)
-                rec.module.set_state(module_state)
+                rec.module.set_state(saved)
         self._tick = state.tick
 
     def _check_restorable(self, state: WorldState, what: str) -> None:

@@ -96,7 +96,7 @@ def _joints(world: World) -> list[str]:
 
 def fingerprint(world: World) -> tuple:
     snap = world.snapshot()
-    return (snap.tick, tuple(sorted(world.modules)), snap.bus.tobytes(), pickle.dumps(snap.states))
+    return (snap.tick, tuple(sorted(world.modules)), snap.bus.tobytes(), pickle.dumps((snap.states, snap.params)))
 
 
 def run(ops: list[tuple]) -> tuple[World, list[tuple]]:

@@ -209,7 +209,7 @@ def test_history_reuses_state_slots_instead_of_leaking():
         assert len(pool.slots) <= 32
         snap = w.snapshot()  # a snapshot keeps its state alive past the ring
         w.tick(50)
-        assert snap.states[0][1].slot not in pool.free
+        assert snap.states[0].slot not in pool.free
 
 
 def test_fmu_without_state_support_refuses_rollback_and_fork(tmp_path):
