@@ -175,35 +175,33 @@ class IsolatedFMUModule(FMUModuleBase):
         raise cls(self.name, call, None, message)
 
     def _crashed(self, op: str, exc: BaseException) -> FMUCrashError:
-        child = self._child
-        call = child.call_in_progress()
+        call, how = self._lose_child("died")
         during = f"during {call}" if call else "between two calls"
-        how = child.death()
-        self._child = None
-        child.cleanup()
-        self._pending = self._state
-        if self._state is None:
-            self._lost = (f"the FMU process died earlier ({how}) and {self.info.label} cannot serialize its state, "
-                          "so it cannot be brought back")
         return FMUCrashError(self.name, call or op, None, f"the isolated FMU process died {during} ({op}): {how}; "
                              f"{self.info.label}")
 
     def _hung(self, op: str) -> FMUTimeoutError:
         """The child did not answer in time: kill it; the next step starts a new one from the last good
         state, as after a crash."""
+        self._child.proc.kill()
+        call, how = self._lose_child(f"was killed (no answer within {self.call_timeout:g} s)")
+        return FMUTimeoutError(self.name, call or op, None, f"the isolated FMU did not answer within "
+                               f"{self.call_timeout:g} s ({'in ' + call if call else op}); its process was "
+                               f"killed ({how}); {self.info.label}")
+
+    def _lose_child(self, what: str) -> tuple[str, str]:
+        """Forget a dead child: (the FMI call it was in, how it ended). The next step starts a new one
+        from the last good state, or says why it cannot."""
         child = self._child
         call = child.call_in_progress()
-        child.proc.kill()
         how = child.death()
         self._child = None
         child.cleanup()
         self._pending = self._state
         if self._state is None:
-            self._lost = (f"the FMU process was killed earlier (no answer within {self.call_timeout:g} s) and "
-                          f"{self.info.label} cannot serialize its state, so it cannot be brought back")
-        return FMUTimeoutError(self.name, call or op, None, f"the isolated FMU did not answer within "
-                               f"{self.call_timeout:g} s ({'in ' + call if call else op}); its process was "
-                               f"killed ({how}); {self.info.label}")
+            self._lost = (f"the FMU process {what} earlier ({how}) and {self.info.label} cannot serialize its "
+                          "state, so it cannot be brought back")
+        return call, how
 
     def _drop_child(self) -> None:
         child, self._child = self._child, None
