@@ -51,7 +51,7 @@ from .errors import DynabrainError
 from .mcap_meta import run_metadata
 from .mcap_scene import SceneDrawing
 from .mcap_schema import METADATA_NAME, BusCodec, FieldNumbers, event_bytes, foxglove_descriptor, pose_columns
-from .mcap_sink import ProcessSink, ThreadSink
+from .mcap_sink import NOTHING_WRITTEN, ProcessSink, ThreadSink
 from .observers import Observer, WorldEvent, WorldView
 
 _log = logging.getLogger("dynabrain.mcap")
@@ -73,16 +73,8 @@ class _Block:
 
     def __init__(self, codec: BusCodec, capacity: int, extra: int, pool: deque, sink: ThreadSink | ProcessSink):
         self.codec, self.pool = codec, pool
-        self.shared_rows = self.shared_extra = None
-        if sink.shared:  # the child writer maps the same memory
-            self.shared_rows = sink.shared_rows((capacity, codec.size))
-            self.rows = self.shared_rows.array
-            if extra:
-                self.shared_extra = sink.shared_rows((capacity, extra))
-            self.extra = self.shared_extra.array if extra else None
-        else:
-            self.rows = np.empty((capacity, codec.size))
-            self.extra = np.empty((capacity, extra)) if extra else None
+        self.rows, self.shared_rows = sink.new_rows((capacity, codec.size))  # shared: the child writer maps it
+        self.extra, self.shared_extra = sink.new_rows((capacity, extra)) if extra else (None, None)
         self.scenes: list[tuple[int, bytes]] = []
 
     def start(self, first: int, epoch: int) -> _Block:
@@ -270,8 +262,7 @@ class McapLogger(Observer):
     def stats(self) -> dict[str, float]:
         """What was written (messages, chunks, bytes; complete once closed), the rollback epoch, and the
         writer's CPU time (the child process's, or the writer thread's)."""
-        done = self._sink.stats if self._sink is not None else {"messages": 0, "chunks": 0, "bytes": 0,
-                                                                 "writer_cpu_s": 0.0}
+        done = self._sink.stats if self._sink is not None else NOTHING_WRITTEN
         return {**done, "epoch": self._epoch}
 
     # -- the stepping thread: rows into blocks ----------------------------------------------------------
@@ -364,7 +355,7 @@ class McapLogger(Observer):
         return pose_columns(view.core.name, self._bodies, codec)
 
     def _drain(self, n: int) -> None:
-        """Hand the ``n`` oldest waiting rows to the writer's thread, in one job."""
+        """Hand the ``n`` oldest waiting rows to the writer, in one call."""
         self._drained_at = time.monotonic()
         parts = []
         while n > 0 and self._pending:

@@ -21,6 +21,7 @@ writer's thread in this process (``McapLogger(writer="thread")``).
 from __future__ import annotations
 
 import contextlib
+import json
 import mmap
 import os
 import socket
@@ -42,6 +43,7 @@ from .mcap_write import McapWriter
 START_TIMEOUT_S = 60.0
 """How long the child writer may take to start (it imports numpy; on a busy machine that is slow)."""
 FINISH_TIMEOUT_S = 300.0
+NOTHING_WRITTEN = {"messages": 0, "chunks": 0, "bytes": 0, "writer_cpu_s": 0.0}
 """How long closing waits for a child writer to write what it was handed."""
 
 
@@ -124,8 +126,6 @@ class LogSink:
 
     def events_channel(self) -> int:
         def make() -> int:
-            import json
-
             sid = self.writer.add_schema("dynabrain.Event", "jsonschema", json.dumps(EVENT_SCHEMA).encode())
             return self.writer.add_channel(TOPIC_EVENTS, "json", sid)
 
@@ -221,13 +221,16 @@ _PREFIX = "dynabrain-log-"
 class ThreadSink:
     """The sink on the writer's thread of this process."""
 
-    shared = False
-
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
                  bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
         self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
         self._writer = self._sink.writer
         self._stats: dict[str, float] = {}
+
+    @staticmethod
+    def new_rows(shape: tuple[int, ...]) -> tuple[np.ndarray, None]:
+        """An array for rows (the writer's thread reads it as it is)."""
+        return np.empty(shape), None
 
     def call(self, name: str, *args: Any) -> None:
         method = getattr(self._sink, name)
@@ -277,8 +280,6 @@ class ThreadSink:
 class ProcessSink:
     """The sink in a child process (see the module docstring)."""
 
-    shared = True
-
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
                  bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
         try:  # refuse a path that cannot be written here and now, not at the child's first write
@@ -312,10 +313,11 @@ class ProcessSink:
             self._end()
             raise
 
-    def shared_rows(self, shape: tuple[int, ...]) -> SharedRows:
+    def new_rows(self, shape: tuple[int, ...]) -> tuple[np.ndarray, SharedRows]:
+        """An array for rows in shared memory, and its handle (the child maps it by its path)."""
         rows = SharedRows(shape)
         self._shared.append(rows)
-        return rows
+        return rows.array, rows
 
     def call(self, name: str, *args: Any) -> None:
         self._send((name, *args))
@@ -374,7 +376,7 @@ class ProcessSink:
 
     @property
     def stats(self) -> dict[str, float]:
-        return self._stats or {"messages": 0, "chunks": 0, "bytes": 0, "writer_cpu_s": 0.0}
+        return self._stats or NOTHING_WRITTEN
 
     # -- plumbing ---------------------------------------------------------------------------------------
     def _send(self, message: tuple) -> None:
