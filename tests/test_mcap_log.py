@@ -39,8 +39,9 @@ def messages(path: Path, topic: str, cls=None):
                 for _s, _c, m in reader.iter_messages(topics=[topic], log_time_order=False)]
 
 
-def test_round_trip_holds_what_the_world_had(tmp_path):
-    world, path = record(tmp_path, decimate=5)
+@pytest.mark.parametrize("writer", ["process", "thread"])
+def test_round_trip_holds_what_the_world_had(tmp_path, writer):
+    world, path = record(tmp_path, decimate=5, writer=writer)
     seen = {0: world.snapshot().bus}
     poses = {}
     for _ in range(120):
@@ -109,8 +110,9 @@ def test_file_is_valid_mcap_and_every_schema_decodes(tmp_path):
     assert cube.color.a == 1.0 and by_id["floor"].cubes[0].size.x == pytest.approx(4.0)
 
 
-def test_rollbacks_leave_the_run_on_the_main_topics(tmp_path):
-    world, path = record(tmp_path, window=16, batch=8)
+@pytest.mark.parametrize("writer", ["process", "thread"])
+def test_rollbacks_leave_the_run_on_the_main_topics(tmp_path, writer):
+    world, path = record(tmp_path, window=16, batch=8, writer=writer)
     world.tick(100)
     world.backtick(10)          # within the window: never written to /bus
     world.set("core.friction", 0.4)
