@@ -22,11 +22,7 @@ FMUS = Path(__file__).resolve().parents[1] / "fmus"
 VERSIONS = (2, 3)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("DYNABRAIN_CACHE", str(tmp_path_factory.mktemp("cache")))
-        yield
+pytestmark = pytest.mark.usefixtures("fmu_cache")  # FMUs built here go to a cache of this module's own
 
 
 def fmu(name: str, version: int = 2, module: str | None = None, **params) -> FMUModule:

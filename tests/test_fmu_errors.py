@@ -40,11 +40,7 @@ int model_step(ModelData *m, double h) {
 """
 
 
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("DYNABRAIN_CACHE", str(tmp_path_factory.mktemp("cache")))
-        yield
+pytestmark = pytest.mark.usefixtures("fmu_cache")  # FMUs built here go to a cache of this module's own
 
 
 @pytest.fixture(scope="module")

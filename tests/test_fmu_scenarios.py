@@ -18,11 +18,7 @@ from dynabrain.orchestrator.world import World
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def cache(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("DYNABRAIN_CACHE", str(tmp_path_factory.mktemp("cache")))
-        yield
+pytestmark = pytest.mark.usefixtures("fmu_cache")  # FMUs built here go to a cache of this module's own
 
 
 @pytest.mark.parametrize("name", ["fmu_moving_floor", "fmu_servo"])
