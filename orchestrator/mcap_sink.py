@@ -7,14 +7,15 @@ into ``/bus``, ``/tf`` and ``/scene`` messages, writes events and metadata, and 
 
 `ProcessSink` (the default) runs the sink in a child process (``python -m
 dynabrain.orchestrator.mcap_sink``; it starts in about 0.15 s, and `attach` waits for it). Rows
-travel through shared memory (each block of rows is a file in ``/dev/shm``, mapped by both
-processes), calls through a pipe; the child acknowledges each batch so the block can take rows
-again. Encoding and compression then cost the simulation only the row copies: on a thread of the
-simulation's process they hold its interpreter lock part of the time, and logging the humanoid cost
-about 45% of its step that way (``bench/logging_cost.py``). If the simulation's process dies, the
-child sees the pipe close and finishes the file (summary and footer): nothing handed over is lost.
-A shared file's name is removed as soon as the child has mapped it (files of processes killed
-before that are removed by the next log started). `ThreadSink` runs the same sink on the
+travel through shared memory (each block of rows is a file in ``/dev/shm``, or in the temporary
+folder when that is missing or full, mapped by both processes), calls through a pipe; the child
+acknowledges each batch so the block can take rows again. Encoding and compression then cost the
+simulation only the row copies: on a thread of the simulation's process they hold its interpreter
+lock part of the time, and logging the humanoid cost about 45% of its step that way
+(``bench/logging_cost.py``). If the simulation's process dies, the child sees the pipe close and
+finishes the file (summary and footer): nothing handed over is lost. A shared file's name is removed
+as soon as the child has mapped it (files of processes killed before that are removed by the next
+log started). `ThreadSink` runs the same sink on the
 writer's thread in this process (``McapLogger(writer="thread")``).
 """
 
@@ -157,13 +158,16 @@ class SharedRows:
     its path, in the child writer."""
 
     def __init__(self, shape: tuple[int, ...]):
-        fd, self.path = tempfile.mkstemp(prefix=f"{_PREFIX}{os.getpid()}-", dir=_shared_folder())
-        try:
-            size = max(8, 8 * int(np.prod(shape)))
-            os.ftruncate(fd, size)
-            self._map = mmap.mmap(fd, size)
-        finally:
-            os.close(fd)
+        size = max(8, 8 * int(np.prod(shape)))
+        error: OSError | None = None
+        for folder in _row_folders():
+            try:
+                self._map, self.path = _reserve(folder, size)
+                break
+            except OSError as exc:
+                error = exc
+        else:
+            raise DynabrainError(f"no memory to share rows with the log writer ({size} bytes): {error}")
         self.array = np.frombuffer(self._map, dtype=np.float64, count=int(np.prod(shape))).reshape(shape)
 
     def release(self) -> None:
@@ -172,6 +176,25 @@ class SharedRows:
             self._map.close()
         with contextlib.suppress(OSError):
             os.unlink(self.path)
+
+
+def _reserve(folder: str, size: int) -> tuple[mmap.mmap, str]:
+    """A new file of ``size`` bytes in ``folder``, its memory reserved (a full tmpfs, such as a
+    container's small /dev/shm, refuses here rather than killing the simulation with SIGBUS when a
+    row is written), mapped."""
+    fd, path = tempfile.mkstemp(prefix=f"{_PREFIX}{os.getpid()}-", dir=folder)
+    try:
+        if hasattr(os, "posix_fallocate"):
+            os.posix_fallocate(fd, 0, size)
+        else:
+            os.ftruncate(fd, size)
+        return mmap.mmap(fd, size), path
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        raise
+    finally:
+        os.close(fd)
 
 
 def _mapped(path: str, shape: tuple[int, ...], maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> np.ndarray:
@@ -186,18 +209,18 @@ def _mapped(path: str, shape: tuple[int, ...], maps: dict[str, tuple[mmap.mmap, 
     return hit[1]
 
 
-def remove_stale_rows(folder: str | None = None) -> None:
+def remove_stale_rows() -> None:
     """Remove shared-row files left by processes that no longer run (both killed before the child
     mapped a block); their names carry the simulation's process id."""
-    folder = folder or _shared_folder()
-    with contextlib.suppress(OSError):
-        for name in os.listdir(folder):
-            if not name.startswith(_PREFIX):
-                continue
-            pid = name[len(_PREFIX):].split("-", 1)[0]
-            if pid.isdigit() and not _alive(int(pid)):
-                with contextlib.suppress(OSError):
-                    os.unlink(os.path.join(folder, name))
+    for folder in _row_folders():
+        with contextlib.suppress(OSError):
+            for name in os.listdir(folder):
+                if not name.startswith(_PREFIX):
+                    continue
+                pid = name[len(_PREFIX):].split("-", 1)[0]
+                if pid.isdigit() and not _alive(int(pid)):
+                    with contextlib.suppress(OSError):
+                        os.unlink(os.path.join(folder, name))
 
 
 def _alive(pid: int) -> bool:
@@ -210,8 +233,11 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _shared_folder() -> str:
-    return "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else tempfile.gettempdir()
+def _row_folders() -> list[str]:
+    """Where shared rows go: ``/dev/shm`` (memory) where there is one, else (or when it is full) the
+    temporary folder."""
+    shm = ["/dev/shm"] if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else []
+    return list(dict.fromkeys([*shm, tempfile.gettempdir()]))
 
 
 _PREFIX = "dynabrain-log-"

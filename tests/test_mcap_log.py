@@ -4,6 +4,7 @@ rollbacks leave the run on the main topics and the discarded ticks on /discarded
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -293,3 +294,26 @@ def test_the_loss_of_the_writer_process_reaches_the_caller(tmp_path, caplog):
     assert world.tick_count >= 10  # the simulation itself is fine
     world.close()
     assert "closing the MCAP log" in caplog.text
+
+
+def test_shared_rows_fall_back_when_shared_memory_is_full(tmp_path, monkeypatch):
+    full, spare = tmp_path / "full", tmp_path / "spare"
+    full.mkdir()
+    spare.mkdir()
+    real = mcap_sink._reserve
+
+    def reserve(folder, size):
+        if folder == str(full):
+            raise OSError(28, "No space left on device")  # what posix_fallocate says on a full tmpfs
+        return real(folder, size)
+
+    monkeypatch.setattr(mcap_sink, "_reserve", reserve)
+    monkeypatch.setattr(mcap_sink, "_row_folders", lambda: [str(full), str(spare)])
+    rows = mcap_sink.SharedRows((4, 3))
+    assert os.path.dirname(rows.path) == str(spare) and rows.array.shape == (4, 3)
+    rows.array[:] = 1.5
+    rows.release()
+    monkeypatch.setattr(mcap_sink, "_row_folders", lambda: [str(full)])
+    with pytest.raises(DynabrainError, match=r"no memory to share rows with the log writer.*No space left"):
+        mcap_sink.SharedRows((4, 3))
+    assert list(full.iterdir()) == [] and list(spare.iterdir()) == []
