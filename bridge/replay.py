@@ -15,7 +15,9 @@ world publishes (`PROTOCOL.md`, *Replaying a recording*):
 
 Frames go out at simulated time / ``speed`` of wall-clock time from the first frame (``speed`` may be
 ``inf``: as fast as possible). Playing starts once a subscriber to ``state`` or ``events`` is there, or
-after ``wait_s`` seconds without one, so the first frames are not sent to nobody.
+after ``wait_s`` seconds without one, so the first frames are not sent to nobody. Once one of the two
+has a subscriber, playing waits up to ``SETTLE_S`` for the other too: a client declares its
+subscriptions one after the other, and the first frame must not leave before the second one is there.
 
 Where it listens: ``settings`` in code; from the command line the environment variable
 ``DYNABRAIN_REPLAY_LISTEN`` (endpoints separated by commas; default ``tcp/127.0.0.1:7447``, port 0 picks a
@@ -50,6 +52,9 @@ LISTEN_ENV = "DYNABRAIN_REPLAY_LISTEN"
 """Environment variable: the endpoints ``dynabrain replay --publish`` listens on (comma-separated)."""
 DEFAULT_STREAM = ("body_pos", "body_quat", "joint_q", "joint_qd")
 SKIPPED_EVENTS = frozenset({"layout"})
+SETTLE_S = 0.5
+"""After the first subscriber (to the state or the events) appears, how long playing waits for one to
+the other as well."""
 """Logger bookkeeping, not events of the world."""
 
 
@@ -217,6 +222,10 @@ class RecordingPublisher:
         end = time.monotonic() + timeout_s
         while not stop.is_set():
             if self._state.matching_status.matching or self._events.matching_status.matching:
+                settle = time.monotonic() + SETTLE_S  # the same client's other subscription, if it has one
+                while not stop.is_set() and time.monotonic() < settle and not (
+                        self._state.matching_status.matching and self._events.matching_status.matching):
+                    stop.wait(0.01)
                 return True
             if time.monotonic() >= end:
                 return False
