@@ -164,7 +164,7 @@ def test_crash_of_an_fmu_without_serializable_state_stops_cleanly(tmp_path):
 
 def test_a_hung_fmu_is_killed_after_its_call_timeout_and_the_world_goes_on(crashy):
     hung = make_fmu_module("c", str(crashy), base_dir=".", params={"how": 3}, targets=[], isolate=True,
-                           call_timeout=0.5)
+                           call_timeout=2.0)  # every other call answers in well under that, even on a busy machine
     with World(step="1ms") as w:
         w.add_module(hung)
         w.set("c.u", 0.25)
@@ -175,7 +175,7 @@ def test_a_hung_fmu_is_killed_after_its_call_timeout_and_the_world_goes_on(crash
             w.tick()
         e = err.value
         assert isinstance(e, FMUCrashError) and (e.module, e.tick, e.call) == ("c", 5, "fmi2DoStep")
-        assert "did not answer within 0.5 s" in str(e) and "SIGKILL" in str(e)
+        assert "did not answer within 2 s" in str(e) and "SIGKILL" in str(e)
         assert w.tick_count == 5 and w.get("c.y") == y and hung.pid is None
         w.set("c.u", 0.25)
         w.tick(2)  # a new process, from the last good tick
@@ -189,10 +189,10 @@ def test_call_timeout_is_checked_in_a_scenario(crashy, tmp_path):
                         f"{extra}")
         return path
 
-    world = load_scenario(scenario("    isolate: true\n    call_timeout: 250ms\n")).build()
+    world = load_scenario(scenario("    isolate: true\n    call_timeout: 2500ms\n")).build()
     try:
-        assert world.modules["c"].call_timeout == 0.25
-        assert world.modules["c"].scenario_spec()["call_timeout"] == 0.25
+        assert world.modules["c"].call_timeout == 2.5
+        assert world.modules["c"].scenario_spec()["call_timeout"] == 2.5
     finally:
         world.close()
     for extra, message in (("    call_timeout: 1s\n", "isolate: true"),

@@ -41,6 +41,9 @@ from .worker import TRACE_SIZE
 STOP_TIMEOUT_S = 5.0
 CALL_TIMEOUT_S = 30.0
 """How long one call of an isolated FMU may take by default (``call_timeout`` in a scenario)."""
+START_TIMEOUT_S = 60.0
+"""How long starting the child and loading the FMU may take, at least (Python and FMPy start first;
+on a busy machine that is slow, so ``call_timeout`` does not bound it)."""
 
 
 class _Child:
@@ -146,21 +149,23 @@ class IsolatedFMUModule(FMUModuleBase):
         """Start a worker and load the FMU in it; on any failure no process is left behind."""
         self._child = _Child(self.info.label)
         try:
-            self._request("open", self.info, self.name, self.CAPABILITIES.can_rollback, str(self._child.dir / "fmu"))
+            self._request("open", self.info, self.name, self.CAPABILITIES.can_rollback, str(self._child.dir / "fmu"),
+                          timeout=max(self.call_timeout, START_TIMEOUT_S))
         except BaseException:
             child, self._child = self._child, None
             if child is not None:
                 child.kill()
             raise
 
-    def _request(self, op: str, *args: Any) -> Any:
+    def _request(self, op: str, *args: Any, timeout: float | None = None) -> Any:
+        """One request to the child, answered within ``timeout`` (default: ``call_timeout``)."""
         child = self._child
         if child is None:
             raise FMUCrashError(self.name, op, None, self._lost or "the FMU process is not running")
         try:
             child.conn.send((op, *args))
-            if not child.conn.poll(self.call_timeout):
-                raise self._hung(op)
+            if not child.conn.poll(self.call_timeout if timeout is None else timeout):
+                raise self._hung(op, self.call_timeout if timeout is None else timeout)
             reply = child.conn.recv()
         except (EOFError, OSError) as exc:
             raise self._crashed(op, exc) from None
@@ -180,13 +185,13 @@ class IsolatedFMUModule(FMUModuleBase):
         return FMUCrashError(self.name, call or op, None, f"the isolated FMU process died {during} ({op}): {how}; "
                              f"{self.info.label}")
 
-    def _hung(self, op: str) -> FMUTimeoutError:
+    def _hung(self, op: str, timeout: float) -> FMUTimeoutError:
         """The child did not answer in time: kill it; the next step starts a new one from the last good
         state, as after a crash."""
         self._child.proc.kill()
-        call, how = self._lose_child(f"was killed (no answer within {self.call_timeout:g} s)")
+        call, how = self._lose_child(f"was killed (no answer within {timeout:g} s)")
         return FMUTimeoutError(self.name, call or op, None, f"the isolated FMU did not answer within "
-                               f"{self.call_timeout:g} s ({'in ' + call if call else op}); its process was "
+                               f"{timeout:g} s ({'in ' + call if call else op}); its process was "
                                f"killed ({how}); {self.info.label}")
 
     def _lose_child(self, what: str) -> tuple[str, str]:
