@@ -470,8 +470,9 @@ class ProcessSink:
 
 
 def _serve(conn: Connection) -> None:
-    """The child writer: open the log as told, take calls until ``finish`` (or the pipe closing: the
-    simulation's process is gone, so finish the file with what arrived)."""
+    """The child writer: open the log as told, take calls until ``finish``. When the simulation's
+    process is gone (its end of the pipe closed, maybe in the middle of a message, or an answer to it
+    cannot be sent), finish the file with what arrived."""
     try:
         _op, path, writer_args, dt_ns, decimate, bodies, descriptors = conn.recv()
         sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
@@ -479,51 +480,67 @@ def _serve(conn: Connection) -> None:
     except EOFError:
         return
     except BaseException as exc:  # reported to the parent, which raises it
-        conn.send(("error", _message(exc)))
+        _tell(conn, ("error", _message(exc)))
         return
-    conn.send(("ready",))
     maps: dict[str, tuple[mmap.mmap, np.ndarray]] = {}
-    failed, done = False, 0
-    cpu0 = time.process_time()
     try:
-        while True:
-            try:
-                message = conn.recv()
-            except Exception:  # the simulation's process is gone (maybe mid-message): keep what it handed over
-                with contextlib.suppress(BaseException):
-                    sink.finish()
-                return
-            op = message[0]
-            if op == "finish":
-                try:
-                    stats = sink.finish()
-                    stats["writer_cpu_s"] = time.process_time() - cpu0
-                    conn.send(("finished", stats))
-                except BaseException as exc:
-                    conn.send(("error", _message(exc)))
-                return
-            if op == "abort":
-                with contextlib.suppress(BaseException):
-                    sink.writer.close()
-                return
-            try:
-                if op == "rows":
-                    done += 1
-                    if not failed:
-                        for key, (rows_path, shape), extra, lo, hi, first, epoch, discarded, scenes in message[1]:
-                            rows = _mapped(rows_path, shape, maps)[lo:hi]
-                            more = None if extra is None else _mapped(extra[0], extra[1], maps)[lo:hi]
-                            sink.rows(key, rows, more, first + lo, epoch, discarded, scenes)
-                    conn.send(("done", done))
-                elif not failed:
-                    getattr(sink, op)(*message[1:])
-            except BaseException as exc:  # the parent raises it at its next call
-                failed = True
-                conn.send(("error", f"writing the log {path} failed: {_message(exc)}"))
+        if _tell(conn, ("ready",)):
+            _take_calls(conn, sink, path, maps)
     finally:
         for mm, _array in maps.values():
             with contextlib.suppress(Exception):
                 mm.close()
+
+
+def _take_calls(conn: Connection, sink: LogSink, path: str, maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> None:
+    failed, done, gone = False, 0, False  # gone: answers cannot be sent; the calls still in the pipe are taken
+    cpu0 = time.process_time()
+    while True:
+        try:
+            message = conn.recv()
+        except Exception:  # the simulation's process is gone
+            break
+        op = message[0]
+        if op == "finish":
+            try:
+                stats = sink.finish()
+                stats["writer_cpu_s"] = time.process_time() - cpu0
+                _tell(conn, ("finished", stats))
+            except BaseException as exc:
+                _tell(conn, ("error", _message(exc)))
+            return
+        if op == "abort":
+            with contextlib.suppress(BaseException):
+                sink.writer.close()
+            return
+        answer = None
+        try:
+            if op == "rows":
+                done += 1
+                if not failed:
+                    for key, (rows_path, shape), extra, lo, hi, first, epoch, discarded, scenes in message[1]:
+                        rows = _mapped(rows_path, shape, maps)[lo:hi]
+                        more = None if extra is None else _mapped(extra[0], extra[1], maps)[lo:hi]
+                        sink.rows(key, rows, more, first + lo, epoch, discarded, scenes)
+                answer = ("done", done)
+            elif not failed:
+                getattr(sink, op)(*message[1:])
+        except BaseException as exc:  # the parent raises it at its next call
+            failed = True
+            answer = ("error", f"writing the log {path} failed: {_message(exc)}")
+        if answer is not None and not gone:
+            gone = not _tell(conn, answer)
+    with contextlib.suppress(BaseException):  # keep what it handed over
+        sink.finish()
+
+
+def _tell(conn: Connection, message: tuple) -> bool:
+    """Send to the simulation's process; False when it is gone."""
+    try:
+        conn.send(message)
+    except OSError:
+        return False
+    return True
 
 
 def _message(exc: BaseException) -> str:

@@ -317,3 +317,21 @@ def test_shared_rows_fall_back_when_shared_memory_is_full(tmp_path, monkeypatch)
     with pytest.raises(DynabrainError, match=r"no memory to share rows with the log writer.*No space left"):
         mcap_sink.SharedRows((4, 3))
     assert list(full.iterdir()) == [] and list(spare.iterdir()) == []
+
+
+def test_the_writer_process_finishes_the_file_when_the_simulation_vanishes(tmp_path):
+    """The simulation's end of the pipe closes while the child still has batches to write and answers
+    to send (as when its process is killed): the child writes them all and finishes the file."""
+    sc = load_scenario(SCENARIOS / "two_cubes.yaml")
+    world = sc.build()
+    logger = McapLogger(tmp_path / "run.mcap", window=0, batch=4).attach(world, sc)
+    world.tick(400)  # a hundred batches handed over, most not yet acknowledged
+    sink = logger._sink
+    sink._conn.close()  # no `finish`: the pipe just closes
+    sink._proc.wait(30)
+    assert sink._proc.returncode == 0
+    index = read_index(tmp_path / "run.mcap")  # complete: summary, footer, every handed-over tick
+    ticks = sorted(r.tick for r in iter_bus(tmp_path / "run.mcap", index))
+    assert ticks == list(range(len(ticks))) and len(ticks) >= 397
+    world.unobserve(logger)
+    world.close()
