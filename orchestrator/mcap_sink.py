@@ -437,7 +437,7 @@ class ProcessSink:
                 message = self._conn.recv()
             except (OSError, EOFError):
                 return ("error", f"the log writer process for {self.path} ended ({self._exit()})")
-            if message[0] in ("done",):
+            if message[0] == "done":
                 self._take(message)
                 continue
             return message
