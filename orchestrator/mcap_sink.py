@@ -25,7 +25,6 @@ import contextlib
 import json
 import mmap
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -40,6 +39,7 @@ import numpy as np
 from .errors import DynabrainError
 from .mcap_schema import DISCARDED, EVENT_SCHEMA, TOPIC_BUS, TOPIC_EVENTS, TOPIC_SCENE, TOPIC_TF, BusCodec, PoseCodec
 from .mcap_write import McapWriter
+from .workers import spawn_worker
 
 START_TIMEOUT_S = 60.0
 """How long the child writer may take to start (it imports numpy; on a busy machine that is slow)."""
@@ -314,16 +314,10 @@ class ProcessSink:
             raise DynabrainError(f"cannot write the log {path}: {exc.strerror}") from None
         self.path = path
         remove_stale_rows()
-        ours, theirs = socket.socketpair()
         try:
-            self._proc = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())],
-                                          stdin=subprocess.DEVNULL, pass_fds=(theirs.fileno(),), close_fds=True)
+            self._proc, self._conn = spawn_worker(__name__)
         except OSError as exc:
-            ours.close()
             raise DynabrainError(f"cannot start the log writer process for {path}: {exc}") from None
-        finally:
-            theirs.close()
-        self._conn = Connection(ours.detach())
         self._seq = 0
         self._releases: deque[tuple[int, list[Any]]] = deque()
         self._shared: list[SharedRows] = []

@@ -18,12 +18,9 @@ import contextlib
 import mmap
 import shutil
 import signal
-import socket
 import subprocess
-import sys
 import tempfile
 from collections.abc import Sequence
-from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +28,7 @@ import numpy as np
 
 from ..errors import DynabrainError
 from ..module import Capabilities, SetupContext
+from ..workers import spawn_worker
 from . import errors as fmu_errors
 from .errors import FMUCrashError, FMUError, FMUTimeoutError
 from .info import FmuInfo
@@ -57,20 +55,13 @@ class _Child:
         trace_path.write_bytes(b"\0" * TRACE_SIZE)
         with open(trace_path, "r+b") as fh:
             self.trace = mmap.mmap(fh.fileno(), TRACE_SIZE)
-        ours, theirs = socket.socketpair()
         self.log = open(self.log_path, "wb")  # noqa: SIM115 - open for the child's whole life
         try:
-            self.proc = subprocess.Popen(
-                [sys.executable, "-m", "dynabrain.orchestrator.fmu.worker", str(theirs.fileno()), str(trace_path)],
-                stdin=subprocess.DEVNULL, stdout=self.log, stderr=subprocess.STDOUT, pass_fds=(theirs.fileno(),),
-                close_fds=True)
+            self.proc, self.conn = spawn_worker("dynabrain.orchestrator.fmu.worker", str(trace_path), stdout=self.log,
+                                                stderr=subprocess.STDOUT)
         except OSError as exc:
-            ours.close()
             self.cleanup()
             raise FMUError(f"{label}: cannot start the isolation process: {exc}") from None
-        finally:
-            theirs.close()
-        self.conn = Connection(ours.detach())
 
     def call_in_progress(self) -> str:
         """The FMI call the child was in ("" when it was between requests)."""
