@@ -1,61 +1,23 @@
-"""The MuJoCo core with real MuJoCo, driven directly (no World): ports are bound by a small helper that
-allocates every block port and views for the ``view_of`` ports, as the kernel does."""
+"""The MuJoCo core with real MuJoCo, driven directly (no World, ports bound by `corekit`). What both
+cores must do alike is in test_core_contract.py."""
 
 from __future__ import annotations
 
 import copy
 
+import corekit
 import mujoco
 import numpy as np
 import pytest
+from corekit import DT, FLOOR, G, bind, box, run, scene_for_state, trajectory
 
 from dynabrain.modules.mujoco_core import MujocoCore
-from dynabrain.orchestrator.core import BodySpec, JointSpec, SceneSpec
+from dynabrain.orchestrator.core import BodySpec, JointSpec
 from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
-from dynabrain.orchestrator.module import SetupContext
-
-DT = 2_000_000
-G = 9.81
-FLOOR = BodySpec("floor", "plane", ())
-
-
-def bind(core: MujocoCore) -> tuple[dict, dict]:
-    """Allocate block ports and views like the kernel, then bind the core."""
-    inp: dict[str, np.ndarray] = {}
-    out: dict[str, np.ndarray] = {}
-    for ports, dst in ((core.inputs(), inp), (core.outputs(), out)):
-        for p in ports:
-            if p.view_of is None:
-                dst[p.name] = np.zeros(p.shape)
-        for p in ports:
-            if p.view_of is not None:
-                view = dst[p.view_of[0]][p.view_of[1], ...].reshape(p.shape)
-                assert np.shares_memory(view, dst[p.view_of[0]]), p.name
-                dst[p.name] = view
-    core.inp, core.out = inp, out
-    core.bind()
-    return inp, out
 
 
 def make_core(*bodies: BodySpec, model: str | None = None, scenario_dir: str | None = None, **params):
-    core = MujocoCore("phys", SceneSpec(bodies=bodies, model=model), scenario_dir=scenario_dir, **params)
-    core.setup(SetupContext(world_name="t", dt_ns=DT, period_ns=DT, tick=0, rng=np.random.default_rng(0)))
-    inp, out = bind(core)
-    core.start(0)
-    return core, inp, out
-
-
-def run(core: MujocoCore, n: int, record: str | None = None, out: dict | None = None) -> list[np.ndarray]:
-    frames = []
-    for _ in range(n):
-        core.step(0, DT)
-        if record is not None:
-            frames.append(np.array(out[record]))
-    return frames
-
-
-def box(name, size, pos, **kw) -> BodySpec:
-    return BodySpec(name, "box", size, pos=pos, **kw)
+    return corekit.make_core(MujocoCore, *bodies, model=model, scenario_dir=scenario_dir, **params)
 
 
 def test_free_fall_follows_the_integrator():
@@ -104,78 +66,6 @@ def test_zero_restitution_does_not_bounce():
     assert z[-1] == pytest.approx(0.0, abs=1e-3)
 
 
-def scene_for_state():
-    return (FLOOR, box("a", (0.1, 0.1, 0.1), (0, 0, 0.3), mass=0.05),
-            box("b", (0.1, 0.1, 0.1), (0.3, 0, 0.2), mass=0.05),
-            box("c", (0.1, 0.1, 0.1), (0.02, 0.01, 0.6), quat=(0.96, 0.2, 0.1, 0.17), mass=0.05),
-            BodySpec("arm", "capsule", (0.02, 0.4), pos=(1, 0, 1),
-                     joint=JointSpec("hinge", axis=(0, 1, 0), anchor=(0, 0, 0.2), damping=0.01)))
-
-
-def trajectory(core, out, n):
-    frames = []
-    for _ in range(n):
-        core.step(0, DT)
-        frames.append(np.concatenate([out["body_pos"].ravel(), out["body_quat"].ravel(),
-                                      out["body_linvel"].ravel(), out["joint_q"], out["joint_qd"]]))
-    return np.array(frames)
-
-
-def test_save_restore_is_bit_exact():
-    core, inp, out = make_core(*scene_for_state())
-    inp["joint_force"][:] = 0.3
-    run(core, 100)
-    saved = core.get_state()
-    first = trajectory(core, out, 50)
-    core.set_state(saved)
-    assert np.array_equal(trajectory(core, out, 50), first)
-    before = copy.deepcopy(saved[1])
-    core.set_state(saved)
-    assert np.array_equal(saved[1], before)  # set_state does not keep or mutate the saved value
-
-
-def edited_run(core, inp, out):
-    """Steps interleaved with every kind of structural edit and a parameter change."""
-    parts = [trajectory(core, out, 20)]
-    core.make(["a", "arm"])
-    parts.append(trajectory(core, out, 20))
-    core.set_param("friction", 0.4)
-    core.make_joint("a", "c")
-    parts.append(trajectory(core, out, 20))
-    core.no_collision(["a", "b"])
-    core.set_param("restitution", 0.5)
-    inp["joint_force"][:] = -0.2
-    parts.append(trajectory(core, out, 20))
-    core.make(["a", "b", "c", "arm", "floor"])
-    parts.append(trajectory(core, out, 20))
-    return np.concatenate(parts)
-
-
-def test_save_restore_is_bit_exact_across_edits_and_params():
-    core, inp, out = make_core(*scene_for_state())
-    run(core, 30)
-    saved, params = core.get_state(), core.params
-    plain = trajectory(core, out, 40)
-    core.set_state(saved)
-    first = edited_run(core, inp, out)
-    after, after_params = core.get_state(), core.params
-    tail = trajectory(core, out, 30)
-    # back before every edit: the original structure and parameters, then replay
-    core._restore_params(dict(params))
-    core.set_state(saved)
-    inp["joint_force"][:] = 0.0
-    assert core.selection == tuple(core.objects())
-    assert np.array_equal(trajectory(core, out, 40), plain)
-    core.set_state(saved)
-    assert np.array_equal(edited_run(core, inp, out), first)
-    # forward again into the edited structure
-    core._restore_params(dict(params))
-    core.set_state(saved)
-    core._restore_params(dict(after_params))
-    core.set_state(after)
-    assert np.array_equal(trajectory(core, out, 30), tail)
-
-
 def test_make_freezes_the_others_where_they_stand():
     core, _, out = make_core(FLOOR, box("base", (0.2, 0.2, 0.2), (0, 0, 0.1), mass=0.5),
                              box("top", (0.1, 0.1, 0.1), (0, 0, 0.6), mass=0.1),
@@ -220,18 +110,6 @@ def test_make_joint_keeps_the_relative_pose():
     core.remove_joint(name)
     with pytest.raises(DynabrainError, match="joint_a_b"):
         core.remove_joint(name)
-
-
-def test_no_collision_lets_a_box_fall_through_another():
-    scene = (FLOOR, box("low", (0.3, 0.3, 0.1), (0, 0, 0.05), joint=JointSpec("fixed")),
-             box("drop", (0.1, 0.1, 0.1), (0, 0, 0.4), mass=0.1))
-    core, _, out = make_core(*scene)
-    run(core, 400)
-    assert out["drop.pos"][2] == pytest.approx(0.15, abs=2e-3)  # on top of the low box
-    core, _, out = make_core(*scene)
-    core.no_collision(["low", "drop"])
-    run(core, 400)
-    assert out["drop.pos"][2] == pytest.approx(0.05, abs=2e-3)  # through it, on the floor
 
 
 def test_divergence_raises_and_names_the_joint(tmp_path, monkeypatch):
