@@ -1,6 +1,7 @@
 """What every physics core must do the same way, checked on MuJoCo and Exudyn alike with real stepping:
-save and restore bit for bit, across structural edits and parameter changes, and collision filters.
-Each engine's own behaviour (contact models, tolerances, files) is in its own test file."""
+save and restore bit for bit, across structural edits and parameter changes, collision filters, scene
+queries, fork and place. Each engine's own behaviour (contact models, tolerances, files) is in its own
+test file."""
 
 from __future__ import annotations
 
@@ -8,11 +9,12 @@ import copy
 
 import numpy as np
 import pytest
-from corekit import FLOOR, box, make_core, run, scene_for_state, trajectory
+from corekit import FLOOR, G, bind, box, make_core, run, scene_for_state, trajectory
 
 from dynabrain.modules.exudyn_core import ExudynCore
 from dynabrain.modules.mujoco_core import MujocoCore
 from dynabrain.orchestrator.core import JointSpec
+from dynabrain.orchestrator.errors import DynabrainError
 
 ENGINES = pytest.mark.parametrize("engine", [MujocoCore, ExudynCore], ids=["mujoco", "exudyn"])
 
@@ -85,3 +87,40 @@ def test_no_collision_lets_a_box_fall_through_another(engine):
     core.no_collision(["low", "drop"])
     run(core, 400)
     assert out["drop.pos"][2] == pytest.approx(0.05, abs=2e-3)  # through it, on the floor
+
+
+@ENGINES
+def test_queries_and_fork(engine):
+    core, _, out = make_core(engine, *scene_for_state())
+    assert core.objects() == ["floor", "a", "b", "c", "arm"]
+    assert core.joints() == ["a", "b", "c", "arm"]
+    info = core.body_info("a")
+    assert info.free and info.parent is None
+    assert info.geoms[0]["type"] == "box" and info.geoms[0]["size"] == pytest.approx((0.1, 0.1, 0.1))
+    run(core, 50)
+    lin, ang = core.body_velocity("c")
+    # Exudyn answers from the very state its outputs come from; MuJoCo recomputes (to rounding)
+    same = np.array_equal if engine is ExudynCore else np.allclose
+    assert same(lin, out["c.linvel"]) and same(ang, out["c.angvel"])
+    twin = copy.deepcopy(core)  # what World.fork does
+    _, twin_out = bind(twin)
+    twin.start(0)
+    assert np.array_equal(trajectory(twin, twin_out, 30), trajectory(core, out, 30))
+    twin.set_param("gravity", (0.0, 0.0, 0.0))
+    run(twin, 10)
+    assert core.params["gravity"][2] == -G
+
+
+@ENGINES
+def test_place_moves_a_free_body_at_rest(engine):
+    core, _, out = make_core(engine, FLOOR, box("a", (0.1, 0.1, 0.1), (0, 0, 0.5), mass=0.1))
+    run(core, 50)
+    core.place("a", (1.0, 2.0, 0.3), (0.0, 0.0, 0.0, 1.0))
+    assert out["a.pos"] == pytest.approx([1.0, 2.0, 0.3])
+    if engine is ExudynCore:  # its rotation parameters give the quaternion up to sign
+        assert abs(float(np.dot(out["a.quat"], [0.0, 0.0, 0.0, 1.0]))) == pytest.approx(1.0)
+    else:
+        assert out["a.quat"] == pytest.approx([0.0, 0.0, 0.0, 1.0])
+    assert np.all(out["a.linvel"] == 0.0)
+    with pytest.raises(DynabrainError, match="free"):
+        core.place("floor", (0, 0, 0))

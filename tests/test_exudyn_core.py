@@ -10,7 +10,7 @@ import os
 import corekit
 import numpy as np
 import pytest
-from corekit import DT, FLOOR, G, bind, box, run, scene_for_state, trajectory
+from corekit import DT, FLOOR, G, box, run, scene_for_state, trajectory
 
 from dynabrain.modules import exudyn_geometry as geo
 from dynabrain.modules.exudyn_core import ExudynCore
@@ -167,36 +167,6 @@ def test_joint_range_stops_the_joint():
     q = np.array([float(x) for x in run(core, 1000, "arm.q", out)])
     assert q.max() < 0.55  # gravity swings it to +q; the stop holds it near 0.5 rad
     assert q[-1] == pytest.approx(0.5, abs=0.03)
-
-
-def test_queries_and_fork():
-    core, _, out = make_core(*scene_for_state())
-    assert core.objects() == ["floor", "a", "b", "c", "arm"]
-    assert core.joints() == ["a", "b", "c", "arm"]
-    info = core.body_info("a")
-    assert info.free and info.parent is None
-    assert info.geoms[0]["type"] == "box" and info.geoms[0]["size"] == pytest.approx((0.1, 0.1, 0.1))
-    run(core, 50)
-    lin, ang = core.body_velocity("c")
-    assert np.array_equal(lin, out["c.linvel"]) and np.array_equal(ang, out["c.angvel"])
-    twin = copy.deepcopy(core)  # what World.fork does
-    _, twin_out = bind(twin)
-    twin.start(0)
-    assert np.array_equal(trajectory(twin, twin_out, 30), trajectory(core, out, 30))
-    twin.set_param("gravity", (0.0, 0.0, 0.0))
-    run(twin, 10)
-    assert core.params["gravity"][2] == -G
-
-
-def test_place_moves_a_free_body_at_rest():
-    core, _, out = make_core(FLOOR, box("a", (0.1, 0.1, 0.1), (0, 0, 0.5), mass=0.1))
-    run(core, 50)
-    core.place("a", (1.0, 2.0, 0.3), (0.0, 0.0, 0.0, 1.0))
-    assert out["a.pos"] == pytest.approx([1.0, 2.0, 0.3])
-    assert abs(float(np.dot(out["a.quat"], [0.0, 0.0, 0.0, 1.0]))) == pytest.approx(1.0)
-    assert np.all(out["a.linvel"] == 0.0)
-    with pytest.raises(DynabrainError, match="free"):
-        core.place("floor", (0, 0, 0))
 
 
 def test_check_module_passes():

@@ -3,13 +3,11 @@ cores must do alike is in test_core_contract.py."""
 
 from __future__ import annotations
 
-import copy
-
 import corekit
 import mujoco
 import numpy as np
 import pytest
-from corekit import DT, FLOOR, G, bind, box, run, scene_for_state, trajectory
+from corekit import DT, FLOOR, G, box, run, scene_for_state, trajectory
 
 from dynabrain.modules.mujoco_core import MujocoCore
 from dynabrain.orchestrator.core import BodySpec, JointSpec
@@ -160,36 +158,6 @@ def test_small_hinge_pendulum_period():
     period = (frac[-1] - frac[0]) / (len(frac) - 1) * DT * 1e-9
     inertia = length**2 + 0.4 * 0.01**2
     assert period == pytest.approx(2 * np.pi * np.sqrt(inertia / (G * length)), rel=2e-3)
-
-
-def test_queries_and_fork():
-    core, _, out = make_core(*scene_for_state())
-    assert core.objects() == ["floor", "a", "b", "c", "arm"]
-    assert core.joints() == ["a", "b", "c", "arm"]
-    info = core.body_info("a")
-    assert info.free and info.parent is None
-    assert info.geoms[0]["type"] == "box" and info.geoms[0]["size"] == pytest.approx((0.1, 0.1, 0.1))
-    run(core, 50)
-    lin, ang = core.body_velocity("c")
-    assert np.allclose(lin, out["c.linvel"]) and np.allclose(ang, out["c.angvel"])
-    twin = copy.deepcopy(core)  # what World.fork does
-    _, twin_out = bind(twin)
-    twin.start(0)
-    assert np.array_equal(trajectory(twin, twin_out, 30), trajectory(core, out, 30))
-    twin.set_param("gravity", (0.0, 0.0, 0.0))
-    run(twin, 10)
-    assert core.params["gravity"][2] == -G
-
-
-def test_place_moves_a_free_body_at_rest():
-    core, _, out = make_core(FLOOR, box("a", (0.1, 0.1, 0.1), (0, 0, 0.5), mass=0.1))
-    run(core, 50)
-    core.place("a", (1.0, 2.0, 0.3), (0.0, 0.0, 0.0, 1.0))
-    assert out["a.pos"] == pytest.approx([1.0, 2.0, 0.3])
-    assert out["a.quat"] == pytest.approx([0.0, 0.0, 0.0, 1.0])
-    assert np.all(out["a.linvel"] == 0.0)
-    with pytest.raises(DynabrainError, match="free"):
-        core.place("floor", (0, 0, 0))
 
 
 MJCF = """
