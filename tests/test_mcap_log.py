@@ -335,3 +335,16 @@ def test_the_writer_process_finishes_the_file_when_the_simulation_vanishes(tmp_p
     assert ticks == list(range(len(ticks))) and len(ticks) >= 397
     world.unobserve(logger)
     world.close()
+
+
+@pytest.mark.parametrize("writer", ["process", "thread"])
+def test_a_writer_that_falls_behind_makes_the_simulation_wait_not_lose(tmp_path, monkeypatch, writer):
+    # two blocks of 3 rows at most, handed over a row at a time: the stepping thread keeps waiting
+    # for the writer to give a block back, and every tick still arrives, in order
+    monkeypatch.setattr(mcap_logger, "BLOCK_BYTES", 3 * 8 * 39)
+    monkeypatch.setattr(mcap_logger, "MAX_BLOCKS", 2)
+    world, path = record(tmp_path, window=0, batch=1, writer=writer)
+    world.tick(300)
+    world.close()
+    ticks = [r.tick for r in iter_bus(path, read_index(path)) if r.topic == "/bus"]
+    assert ticks == list(range(301))
