@@ -25,6 +25,7 @@ import contextlib
 import json
 import mmap
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -542,4 +543,8 @@ def _message(exc: BaseException) -> str:
 
 
 if __name__ == "__main__":
+    # Ctrl-C in a terminal, or a stop sent to the whole process group, is for the simulation: it
+    # closes its log, or dies and closes the pipe; either way this process then finishes the file
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _serve(Connection(int(sys.argv[1])))

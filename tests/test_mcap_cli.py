@@ -114,9 +114,10 @@ def test_a_recording_whose_scenario_no_longer_loads(tmp_path):
     assert "drop.yaml (as recorded in" in flat
 
 
-def _run_until_killed(path: Path, whole_group: bool) -> None:
-    """`dynabrain run --log` until the log holds 400 kB, then SIGKILL: the simulation's process alone,
-    or it and its writer process together (as a terminal's kill of the process group would)."""
+def _run_until_killed(path: Path, whole_group: bool, sig: int = signal.SIGKILL) -> None:
+    """`dynabrain run --log` until the log holds 400 kB, then a signal (SIGKILL by default): to the
+    simulation's process alone, or to it and its writer process together (as a terminal sends Ctrl-C
+    to the whole foreground process group)."""
     proc = subprocess.Popen([sys.executable, "-m", "dynabrain.orchestrator.cli", "run",
                              str(SCENARIOS / "two_cubes.yaml"), "--log", str(path), "--duration", "600s", "-q"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
@@ -126,12 +127,13 @@ def _run_until_killed(path: Path, whole_group: bool) -> None:
             assert proc.poll() is None, proc.stderr.read().decode()
             time.sleep(0.05)
         if whole_group:
-            os.killpg(proc.pid, signal.SIGKILL)
+            os.killpg(proc.pid, sig)
         else:
-            os.kill(proc.pid, signal.SIGKILL)
+            os.kill(proc.pid, sig)
     finally:
         proc.wait(timeout=30)
-    assert proc.returncode == -signal.SIGKILL and path.stat().st_size >= 400_000
+    expected = 130 if sig == signal.SIGINT else -sig  # Ctrl-C: the run stops cleanly, exit status 130
+    assert proc.returncode == expected and path.stat().st_size >= 400_000
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:  # the writer process, if alive, finishes the file and ends
         try:
@@ -162,6 +164,16 @@ def test_a_killed_simulation_leaves_a_complete_log(tmp_path):
     """The writer process outlives the simulation's: it writes what it was handed and the summary."""
     path = tmp_path / "killed.mcap"
     _run_until_killed(path, whole_group=False)
+    code, out = dyn("replay", path)
+    assert code == 0, out
+    _assert_the_run(path)
+
+
+def test_ctrl_c_stops_a_logged_run_with_a_complete_log(tmp_path):
+    """Ctrl-C reaches the writer process too (the whole process group); it leaves the stop to the
+    simulation, which closes the log."""
+    path = tmp_path / "stopped.mcap"
+    _run_until_killed(path, whole_group=True, sig=signal.SIGINT)
     code, out = dyn("replay", path)
     assert code == 0, out
     _assert_the_run(path)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import signal
 import sys
 from multiprocessing.connection import Connection
 from typing import Any
@@ -120,6 +121,7 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the simulation, which stops this process itself
     sys.stdout = sys.stderr  # an FMU's prints and ours go to the log, never into the protocol
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
     raise SystemExit(main(sys.argv))
