@@ -50,9 +50,8 @@ from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
 from .mjaccess import fail
 
 TWO_PI = 2.0 * math.pi
-_AXES = (("slide", "amplitude", "frequency", "kp", "kd", "mass", "q", "qd", "position", "velocity", "force"),
-         ("tilt", "tilt_amplitude", "tilt_frequency", "tilt_kp", "tilt_kd", "inertia", "tilt_q", "tilt_qd",
-          "tilt_angle", "tilt_rate", "tilt_torque"))
+_AXES = (("amplitude", "frequency", "kp", "kd", "mass"),  # the parameters of each axis: slide, then tilt
+         ("tilt_amplitude", "tilt_frequency", "tilt_kp", "tilt_kd", "inertia"))
 
 
 class MovingFloor(Module):
@@ -133,7 +132,7 @@ class MovingFloor(Module):
         self._target = 1.0 if p["enabled"] else 0.0
         self._speed = 1.0 / p["ramp"] if p["ramp"] > 0 else math.inf
         self._axes = tuple((p[amp], TWO_PI * p[freq], p[kp], p[kd], p[inertia])
-                           for _axis, amp, freq, kp, kd, inertia, *_ports in _AXES)
+                           for amp, freq, kp, kd, inertia in _AXES)
 
     def _envelope_rate(self, envelope: float) -> float:
         target = self._target
