@@ -30,7 +30,7 @@ from dynabrain.modules.floor import TWO_PI, MovingFloor, wave
 from dynabrain.modules.mujoco_core import STATE, MujocoCore
 from dynabrain.modules.sensors import Accelerometer, Encoders, ForceSensor, Gyro
 from dynabrain.modules.servo import Servo
-from dynabrain.modules.support import combined_pressure, convex_hull, foot_pressure, polygon_centre, polygon_margin
+from dynabrain.modules.support import contact_pressure, convex_hull, polygon_centre, polygon_margin
 from dynabrain.modules.zmp import ZmpSensor
 from dynabrain.orchestrator.core import SceneSpec
 from dynabrain.orchestrator.structure import build_structure
@@ -89,8 +89,7 @@ class RawLoop:
                                   adr[f"{s}_foot_torque"]:adr[f"{s}_foot_torque"] + 3] for s in "lr"])
         self.acc, self.gyro = np.r_[adr["imu_acc"]:adr["imu_acc"] + 3], np.r_[adr["imu_gyro"]:adr["imu_gyro"] + 3]
         zmp = world.modules["zmp"]
-        self.sites, self.bodies, self.depth, self.mass = zmp._sites, zmp._bodies, zmp._depth, zmp._mass
-        self.foot_of = zmp._foot_of
+        self.zmp_index, self.zmp_nums = zmp._index, [num for _foot, _name, num in zmp._sensors]
         self.zmp_every = round(ZMP_EVERY / self.dt)
         self.t_ns = world.time_ns
 
@@ -104,10 +103,9 @@ class RawLoop:
             self._floor()
             mujoco.mj_step(m, d)
             self.t_ns += dt_ns
-            wrench = d.sensordata[self.ft]  # force sensors, accelerometer, gyro
-            _acc, _gyro = d.sensordata[self.acc], d.sensordata[self.gyro]
+            _wrench, _acc, _gyro = d.sensordata[self.ft], d.sensordata[self.acc], d.sensordata[self.gyro]  # sensors
             if k % self.zmp_every == 0:
-                self._zmp(wrench)
+                self._zmp()
 
     def _floor(self) -> None:
         """The moving floor's law (see modules/floor.py), inline: envelope, phases, PD + feedforward."""
@@ -123,20 +121,24 @@ class RawLoop:
             qa, da = self.floor_q[i], self.floor[i]
             d.qfrc_applied[da] = p[kp] * (x - d.qpos[qa]) + p[kd] * (v - d.qvel[da]) + p[inertia] * a
 
-    def _zmp(self, wrench: np.ndarray) -> None:
-        d = self.d
-        cop, fn = foot_pressure(d.site_xpos[self.sites], d.site_xmat[self.sites], wrench[:, :3],
-                                wrench[:, 3:], self.depth, self.mass, d.subtree_com[self.bodies], self.m.opt.gravity)
-        contact = d.contact
-        feet = self.foot_of[contact.geom].max(axis=1)
-        touching = np.zeros(len(fn), dtype=bool)
-        touching[feet[feet >= 0]] = True
-        loaded = (np.array(fn) > 1.0) & touching
-        zmp = combined_pressure(cop, fn, loaded.tolist())
-        points = contact.pos[(feet >= 0) & loaded[np.maximum(feet, 0)]]
-        if len(points):
-            hull = convex_hull(points)
-            polygon_margin(zmp, hull)
+    def _zmp(self) -> None:
+        """The ZMP sensor's computation (see modules/zmp.py), inline: the feet's contact sensors read in
+        one gather, each foot's centre of pressure, the ZMP, the support polygon and the margin."""
+        values = self.d.sensordata[self.zmp_index].tolist()
+        nums = self.zmp_nums
+        at_force, at_point = len(nums), len(nums) + sum(nums)
+        total = x = y = 0.0
+        polygon = []
+        for num in nums:
+            normal, points = values[at_force:at_force + num], values[at_point:at_point + 3 * num]
+            at_force, at_point = at_force + num, at_point + 3 * num
+            cop, fn = contact_pressure(normal, points)
+            if fn >= 1.0:
+                total, x, y = total + fn, x + cop[0] * fn, y + cop[1] * fn
+                polygon += [points[3 * j:3 * j + 3] for j in range(num) if normal[j] > 0.0]
+        if polygon:
+            hull = convex_hull(polygon)
+            polygon_margin((x / total, y / total), hull)
             polygon_centre(hull)
 
 

@@ -1,16 +1,21 @@
 """The ZMP sensor: centre of pressure of each foot and of both, and whether it lies in the support polygon.
 
-Each foot's centre of pressure comes from the contact wrench the foot carries, measured by the
-native 6-axis force/torque sensor at its ankle (a site of the foot body with MuJoCo ``force`` and
-``torque`` sensors, found by itself), with the foot's own weight added: on a static stance the ZMP is
-the projection of the whole body's centre of mass. The ZMP of the feet together is the pressure-
-weighted mean of the loaded feet (exact when their soles are coplanar); a foot is loaded when it
-touches something (the core's contact list) and carries at least ``min_force``. The support polygon
-is the convex hull of the contact points of the loaded feet.
+Everything comes from the contact forces, read through MuJoCo's native contact sensor: each foot
+needs one in the model, on the foot's body or subtree, reporting at least ``found``, ``force`` and
+``pos`` of each contact (the error says what to add when it is missing)::
 
-Why the wrench and not the contact list's forces: the MuJoCo core keeps its data after
-``mj_step1``, where the contacts are those of the new state and their forces are not computed yet;
-the force sensors hold the values of the last step (see `modules.mjaccess`).
+    <contact name="l_sole" subtree1="l_foot" data="found force pos" num="8"/>
+
+A foot's centre of pressure is the mean of its contact points weighted by their normal forces (exact
+for a flat sole on a flat floor, tilted or not), and its normal force their sum. The ZMP of the feet
+together is the same mean over all loaded feet. A foot is loaded when its contacts carry at least
+``min_force`` in all. The support polygon is the convex hull of the loaded feet's contact points that
+carry a force. (MuJoCo's ``reduce="netforce"`` is refused: its point is the mean weighted by the
+whole force, friction included, which is not the centre of pressure.)
+
+The sensor's values are those of the core's last step (an acceleration-stage sensor, see
+`modules.mjaccess`), and the core restores them on rollback. A foot with more contacts than its
+sensor's ``num`` slots would give a wrong centre of pressure: the step then fails, naming the sensor.
 
 Targets: the feet (bodies). Outputs:
 
@@ -19,7 +24,7 @@ port            shape    unit  meaning
 ==============  =======  ====  ======================================================================
 ``zmp``         (3,)     m     ZMP (centre of pressure of the loaded feet), world frame; NaN airborne
 ``cop``         (k, 3)   m     each foot's centre of pressure (NaN when not loaded); ``<foot>.cop``
-``force``       (k,)     N     each foot's normal ground force; ``<foot>.force``
+``force``       (k,)     N     each foot's normal ground force (0 when not loaded); ``<foot>.force``
 ``inside``      ()       1     1 when the ZMP is at least ``min_margin`` inside the support polygon, else 0
 ``margin``      ()       m     signed distance from the ZMP to the polygon's edge (positive inside)
 ``center``      (3,)     m     centre of the support polygon (mean of its vertices)
@@ -36,11 +41,14 @@ import numpy as np
 from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
 
 from .mjaccess import MujocoLink, fail
-from .support import combined_pressure, convex_hull, foot_pressure, polygon_centre, polygon_margin
+from .support import contact_pressure, convex_hull, polygon_centre, polygon_margin
 
-_SENS = mujoco.mjtSensor
-_BOX, _SPHERE, _CAPSULE = (int(mujoco.mjtGeom.mjGEOM_BOX), int(mujoco.mjtGeom.mjGEOM_SPHERE),
-                           int(mujoco.mjtGeom.mjGEOM_CAPSULE))
+_CONTACT = int(mujoco.mjtSensor.mjSENS_CONTACT)
+_FOOT_OBJECTS = (int(mujoco.mjtObj.mjOBJ_XBODY), int(mujoco.mjtObj.mjOBJ_BODY))  # subtree1=, body1=
+_FIELDS = ("found", "force", "torque", "dist", "pos", "normal", "tangent", "linvel", "angvel")  # data= bits
+_SIZES = (1, 3, 3, 1, 3, 3, 3, 3, 3)
+_NEEDED = ("found", "force", "pos")
+_NETFORCE = 3  # reduce="netforce"
 
 
 class ZmpSensor(Module):
@@ -48,7 +56,7 @@ class ZmpSensor(Module):
 
     PARAMS = (
         Param("min_force", 1.0, unit="N", runtime=True,
-              doc="a foot is loaded when it touches something and carries at least this normal force"),
+              doc="a foot is loaded when its contacts carry at least this normal force in all"),
         Param("min_margin", 0.0, unit="m", dimension="length", runtime=True,
               doc="how far inside the support polygon the ZMP must be for `inside`"),
     )
@@ -76,45 +84,53 @@ class ZmpSensor(Module):
         self._resolve()
 
     def _resolve(self) -> None:
+        """Each foot's contact sensor, as indices into sensordata: one gather reads every value a step
+        needs, laid out as [found of each foot] + [normal forces of each foot] + [points of each foot]."""
         link = self._link
-        m = link.model
-        d = mujoco.MjData(m)  # the model's reference pose: constant offsets come out the same in every state
-        mujoco.mj_kinematics(m, d)
-        feet = self._feet()
-        self._foot_of = np.full(m.ngeom, -1, dtype=np.intp)
-        sites, idx, depth = [], [], []
-        for k, foot in enumerate(feet):
-            geoms = link.subtree_geoms(foot)
-            if not geoms:
+        found, normal, points, self._sensors = [], [], [], []
+        for foot in self._feet():
+            if not link.subtree_geoms(foot):
                 raise link.fail(f"body {foot!r} has no geoms that can collide: a ZMP sensor needs feet "
                                 "that touch the ground")
-            self._foot_of[geoms] = k
-            site, sensors = self._ankle_sensor(foot)
-            sites.append(site)
-            idx.append(sensors)
-            depth.append(_sole_depth(m, d, site, geoms))
-        self._sites = np.array(sites, dtype=np.intp)
-        self._bodies = np.array([link.lookup("body", f) for f in feet], dtype=np.intp)
-        self._idx = np.stack(idx)  # (k, 6): force then torque
-        self._depth = np.array(depth)
-        self._mass = m.body_subtreemass[self._bodies].copy()
+            name, adr, slot, num, offset = self._contact_sensor(foot)
+            self._sensors.append((foot, name, num))
+            found.append(adr + offset["found"])
+            normal += [adr + j * slot + offset["force"] for j in range(num)]  # the force's first component
+            points += [adr + j * slot + offset["pos"] + i for j in range(num) for i in range(3)]
+        self._index = np.array(found + normal + points, dtype=np.intp)
 
-    def _ankle_sensor(self, foot: str) -> tuple[int, np.ndarray]:
-        """The site of ``foot`` with native force and torque sensors, and their sensordata indices."""
+    def _contact_sensor(self, foot: str) -> tuple[str, int, int, int, dict[str, int]]:
+        """The foot's native contact sensor: (name, sensordata address, values per contact, contacts it
+        holds, offset of each data field within a contact)."""
         link, m = self._link, self._link.model
         body = link.lookup("body", foot)
-        for s in range(m.nsite):
-            if int(m.site_bodyid[s]) != body:
+        add = (f'add <contact name="{foot}_contacts" subtree1="{foot}" data="found force pos" num="8"/> '
+               "to the model's <sensor>")
+        unfit = None
+        for s in range(m.nsensor):
+            if int(m.sensor_type[s]) != _CONTACT or int(m.sensor_objtype[s]) not in _FOOT_OBJECTS \
+                    or int(m.sensor_objid[s]) != body:
                 continue
-            found = {}
-            for i in range(m.nsensor):
-                if m.sensor_objtype[i] == int(mujoco.mjtObj.mjOBJ_SITE) and m.sensor_objid[i] == s:
-                    found[int(m.sensor_type[i])] = int(m.sensor_adr[i])
-            f, t = found.get(int(_SENS.mjSENS_FORCE)), found.get(int(_SENS.mjSENS_TORQUE))
-            if f is not None and t is not None:
-                return s, np.r_[f:f + 3, t:t + 3]
-        raise link.fail(f"foot {foot!r} has no site with native force and torque sensors; the ZMP sensor "
-                        "measures each foot's centre of pressure with them (add <force site=...>, <torque site=...>)")
+            bits, reduce, num = (int(v) for v in m.sensor_intprm[s][:3])
+            fields = [f for i, f in enumerate(_FIELDS) if bits >> i & 1]
+            name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_SENSOR, s) or f"#{s}"
+            missing = [f for f in _NEEDED if f not in fields]
+            if missing:
+                unfit = (f"its contact sensor {name!r} does not report {', '.join(missing)}: "
+                         'give it data="found force pos"')
+                continue
+            if reduce == _NETFORCE:
+                unfit = (f"its contact sensor {name!r} sums the contacts (reduce=\"netforce\"), whose point is not "
+                         "the centre of pressure: the ZMP needs each contact (leave reduce out)")
+                continue
+            offset, at = {}, 0
+            for f in fields:
+                offset[f] = at
+                at += _SIZES[_FIELDS.index(f)]
+            return name, int(m.sensor_adr[s]), at, num, offset
+        raise link.fail(f"foot {foot!r}: {unfit}" if unfit else
+                        f"foot {foot!r} has no contact sensor; the ZMP sensor measures the contact forces with "
+                        f"one: {add}")
 
     def start(self, t_ns: int) -> None:
         self.step(t_ns, 0)
@@ -124,59 +140,39 @@ class ZmpSensor(Module):
         if link.core._s is not link._seen:
             link.changed()
             self._resolve()
-        m, d = link.model, link.data
-        wrench = d.sensordata[self._idx]
-        cop, fn = foot_pressure(d.site_xpos[self._sites], d.site_xmat[self._sites],
-                                wrench[:, :3], wrench[:, 3:], self._depth, self._mass,
-                                d.subtree_com[self._bodies], m.opt.gravity)
-        if d.ncon:  # the foot each contact of the core's current list involves (-1 for none)
-            contact = d.contact
-            feet = self._foot_of[contact.geom].max(axis=1)
-            touching = set(feet.tolist())
-        else:
-            touching = set()
+        values = link.data.sensordata[self._index].tolist()
         least = self._param_values["min_force"]
-        loaded = [f > least and k in touching for k, f in enumerate(fn)]
-        zmp = combined_pressure(cop, fn, loaded)
-        values = list(zmp)  # every output in the order `outputs` declares them, written at once
-        for point, on in zip(cop, loaded, strict=True):
-            values += point if on else _NAN3
-        values += [f if on else 0.0 for f, on in zip(fn, loaded, strict=True)]
+        k = len(self._sensors)
+        at_force, at_point = k, k + sum(num for _f, _n, num in self._sensors)
+        cops, forces, loaded, polygon = [], [], [], []
+        total = x = y = z = 0.0
+        for (foot, name, num), found in zip(self._sensors, values[:k], strict=True):
+            if found > num:
+                raise RuntimeError(f"foot {foot!r}: its contact sensor {name!r} found {found:.0f} contacts and holds "
+                                   f"{num} (num={num}): raise num, or the centre of pressure misses contacts")
+            normal, points = values[at_force:at_force + num], values[at_point:at_point + 3 * num]
+            at_force, at_point = at_force + num, at_point + 3 * num
+            cop, fn = contact_pressure(normal, points)
+            on = fn >= least and fn > 0.0
+            loaded.append(on)
+            if on:
+                cops += cop
+                forces.append(fn)
+                total, x, y, z = total + fn, x + cop[0] * fn, y + cop[1] * fn, z + cop[2] * fn
+                polygon += [points[3 * j:3 * j + 3] for j in range(num) if normal[j] > 0.0]
+            else:
+                cops += _NAN3
+                forces.append(0.0)
+        zmp = (x / total, y / total, z / total) if total > 0.0 else _NAN3
         inside, margin, centre = 0.0, math.nan, _NAN3
-        if any(loaded):  # then some contact involves a loaded foot: the support polygon has points
-            keep = feet >= 0
-            if not all(loaded):
-                keep[keep] = np.array(loaded)[feet[keep]]
-            points = contact.pos[keep]
-            hull = convex_hull(points)
+        if polygon:
+            hull = convex_hull(polygon)
             distance = polygon_margin(zmp, hull)
             if math.isfinite(distance):
                 margin = distance
                 inside = 1.0 if distance >= self._param_values["min_margin"] and len(hull) >= 3 else 0.0
-            heights = points[:, 2].tolist()
-            centre = (*polygon_centre(hull), sum(heights) / len(heights))
-        values += (inside, margin, *centre)
-        self.out_flat[:] = values
+            centre = (*polygon_centre(hull), sum(p[2] for p in polygon) / len(polygon))
+        self.out_flat[:] = [*zmp, *cops, *forces, inside, margin, *centre]  # in the order `outputs` declares
 
 
 _NAN3 = (math.nan, math.nan, math.nan)
-
-
-def _sole_depth(m: mujoco.MjModel, d: mujoco.MjData, site: int, geoms: list[int]) -> float:
-    """Distance from ``site`` down (along its -z) to the lowest point of the foot's geoms."""
-    rot_s = d.site_xmat[site].reshape(3, 3)
-    lowest = np.inf
-    for g in geoms:
-        rel = rot_s.T @ d.geom_xmat[g].reshape(3, 3)  # geom axes in the site frame
-        z = float(rot_s[:, 2] @ (d.geom_xpos[g] - d.site_xpos[site]))
-        size, kind = m.geom_size[g], int(m.geom_type[g])
-        if kind == _BOX:
-            extent = float(np.abs(rel[2]) @ size)
-        elif kind == _SPHERE:
-            extent = float(size[0])
-        elif kind == _CAPSULE:
-            extent = float(size[0] + abs(rel[2, 2]) * size[1])
-        else:
-            extent = float(m.geom_rbound[g])
-        lowest = min(lowest, z - extent)
-    return -lowest

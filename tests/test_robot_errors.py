@@ -17,7 +17,7 @@ from dynabrain.modules.servo import Servo
 from dynabrain.modules.stabilizer import Stabilizer
 from dynabrain.modules.zmp import ZmpSensor
 from dynabrain.orchestrator.core import SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError, ScenarioError
+from dynabrain.orchestrator.errors import DynabrainError, ModuleError, ScenarioError
 from dynabrain.orchestrator.scenario import load_scenario
 from dynabrain.orchestrator.world import World
 
@@ -56,7 +56,9 @@ def test_every_bad_module_is_reported_at_load_with_file_line_module_and_field(tm
             "(did you mean 'l_knee'?)"),
         (10, "module 'ft' [targets]: no site 'l_foot_f' in the model (did you mean 'l_foot_ft'?)"),
         (11, "module 'gyro' [targets]: site 'l_foot_ft' has no native gyro sensor"),
-        (12, "module 'zmp' [targets]: foot 'l_shin' has no site with native force and torque sensors"),
+        (12, "module 'zmp' [targets]: foot 'l_shin' has no contact sensor; the ZMP sensor measures the contact "
+             'forces with one: add <contact name="l_shin_contacts" subtree1="l_shin" data="found force pos" '
+             "num=\"8\"/> to the model's <sensor>"),
         (13, "module 'late' [params.delay]: delay 0.003 s is not a whole number of the sensor's period"),
         (14, "module 'stab' [params.ki]: must be zero or positive, got -1.0"),
     ]
@@ -74,19 +76,49 @@ def test_dynabrain_check_lists_them_and_exits_2(tmp_path):
     assert "8 problem(s)" in done.stderr and "bad.yaml:5" in done.stderr and "l_knee" in done.stderr
 
 
-def test_zmp_needs_feet_that_touch(tmp_path):
-    model = tmp_path / "ghost.xml"
-    model.write_text("""<mujoco><worldbody><body name="foot" pos="0 0 0.1"><freejoint/>
-      <geom type="box" size="0.05 0.03 0.01" contype="0" conaffinity="0"/><site name="ft"/></body></worldbody>
-      <sensor><force site="ft"/><torque site="ft"/></sensor></mujoco>""")
-    world = World("w", core=MujocoCore("core", SceneSpec(model=str(model))))
-    with pytest.raises(DynabrainError, match=r"module 'zmp' \[targets\]: body 'foot' has no geoms that can collide"):
+FOOT = """<mujoco><worldbody><geom name="floor" type="plane" size="1 1 .1"/>
+  <body name="foot" pos="0 0 0.012"><freejoint/>
+    <geom type="box" size="0.05 0.03 0.01"{collide}/><geom type="sphere" size="0.01" pos="0.06 0 -0.003"{collide}/>
+  </body></worldbody>
+  <sensor>{sensor}</sensor></mujoco>"""
+SOLE = '<contact name="c" subtree1="foot" data="found force pos"/>'
+
+
+def foot_world(tmp_path: Path, sensor: str, collide: str = "") -> World:
+    model = tmp_path / "foot.xml"
+    model.write_text(FOOT.format(sensor=sensor, collide=collide))
+    return World("w", step="2ms", core=MujocoCore("core", SceneSpec(model=str(model))))
+
+
+@pytest.mark.parametrize(("sensor", "collide", "message"), [
+    (SOLE, ' contype="0" conaffinity="0"', "body 'foot' has no geoms that can collide: a ZMP sensor needs feet"),
+    ("", "", "foot 'foot' has no contact sensor; the ZMP sensor measures the contact forces with one: add "
+             '<contact name="foot_contacts" subtree1="foot" data="found force pos" num="8"/>'),
+    ('<contact name="c" subtree1="foot" data="force pos"/>', "",
+     "foot 'foot': its contact sensor 'c' does not report found: give it data=\"found force pos\""),
+    ('<contact name="c" body1="foot" data="found force pos" reduce="netforce"/>', "",
+     "foot 'foot': its contact sensor 'c' sums the contacts (reduce=\"netforce\"), whose point is not the centre"),
+], ids=["no-collision", "no-sensor", "no-found", "netforce"])
+def test_zmp_needs_feet_that_touch_and_a_contact_sensor_of_each_contact(tmp_path, sensor, collide, message):
+    world = foot_world(tmp_path, sensor, collide)
+    with pytest.raises(DynabrainError) as err:
         world.add_module(ZmpSensor("zmp", targets=["foot"]))
+    assert f"module 'zmp' [targets]: {message}" in str(err.value)
     with pytest.raises(DynabrainError, match=r"module 'zmp2' \[targets\]: no body 'fot' in the model"):
         world.add_module(ZmpSensor("zmp2", targets=["fot"]))
     with pytest.raises(DynabrainError, match=r"module 'zmp3' \[targets\]: name the feet"):
         world.add_module(ZmpSensor("zmp3"))
     assert list(world.modules) == ["core"]
+    world.close()
+
+
+def test_zmp_refuses_a_step_whose_foot_has_more_contacts_than_its_sensor_holds(tmp_path):
+    world = foot_world(tmp_path, '<contact name="c" subtree1="foot" data="found force pos" num="2"/>')
+    world.add_module(ZmpSensor("zmp", targets=["foot"]))
+    with pytest.raises(ModuleError, match=r"module 'zmp': step\(\) at tick \d+ failed: .*foot 'foot': its contact "
+                                          r"sensor 'c' found [3-5] contacts and holds 2 \(num=2\): raise num") as err:
+        world.tick(100)  # the foot lands on the box's corners and the sphere
+    assert world.tick_count == err.value.tick  # rolled back to the start of the failed tick
     world.close()
 
 
