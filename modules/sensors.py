@@ -176,6 +176,9 @@ class Sensor(Module):
             self._saved = (None, self._head, self._rng_state)
         return self._saved
 
+    def steps_change_state(self) -> bool:
+        return self._depth > 1 or self._sigma is not None  # a delay line, or noise drawn
+
     def set_state(self, state: tuple) -> None:
         self._saved = None
         ring, head, rng_state = state

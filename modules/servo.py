@@ -185,6 +185,9 @@ class Servo(Module):
     def set_state(self, state: tuple) -> None:
         self._t0, self._motion, self._pending = state
 
+    def steps_change_state(self) -> bool:
+        return self._pending is not None  # a new program starts at the next step
+
     # -- parameters ---------------------------------------------------------------------------------------
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
         spec = self.param_specs().get(name)

@@ -4,6 +4,7 @@ It puts a module in a small world, drives its inputs with seeded values, and che
 - the declared ports and parameters are well formed;
 - the lifecycle order (setup, bind, start, then steps; close once at the end);
 - the save/restore round trip (``set_state(get_state())`` changes nothing);
+- a module that says its steps leave its state alone (``steps_change_state()`` False) keeps it;
 - step -> restore -> step equality: after a rollback, the same inputs give bit-identical outputs and
   states (the world's ``backtick``, which is what the brain uses);
 - fork: a forked world steps exactly like the original (when the module can fork).
@@ -77,11 +78,12 @@ def check_module(module: Module, *, core: PhysicsCore | None = None, step: str |
         inputs = [n for n in world.signals() if n.startswith(module.name + ".") and
                   world._structure.layout.slots[n].direction == "in" and
                   world._structure.layout.slots[n].port.view_of is None]
-        plan = [{n: drive(rng, world._structure.layout.slots[n].shape) for n in inputs} for _ in range(2 * ticks)]
+        plan = [{n: drive(rng, world._structure.layout.slots[n].shape) for n in inputs} for _ in range(2 * ticks + 5)]
         _run(world, plan[:ticks], report)
         _check_roundtrip(module, report)
         if module.CAPABILITIES.can_rollback:
-            _check_replay(world, module, plan[ticks:], report)
+            _check_steady(world, module, plan[2 * ticks:], report)
+            _check_replay(world, module, plan[ticks:2 * ticks], report)
         if module.CAPABILITIES.can_fork:
             _untrace(module)  # a fork deep-copies the module; it must not copy our wrappers
             try:
@@ -161,6 +163,18 @@ def _check_roundtrip(module: Module, report: CheckReport) -> None:
         report.problems.append("set_state(get_state()) changed the state")
     if _dump(state) != before:
         report.problems.append("the value get_state() returned was mutated by set_state()")
+
+
+def _check_steady(world: World, module: Module, plan: list[dict[str, np.ndarray]], report: CheckReport) -> None:
+    report.checked.append("steps_change_state")
+    for inputs in plan:
+        claim, before = module.steps_change_state(), _dump(module.get_state())
+        if not _run(world, [inputs], report):
+            return
+        if not claim and _dump(module.get_state()) != before:
+            report.problems.append(f"steps_change_state() said False, and the step at tick {world.tick_count - 1} "
+                                   "changed the state: history would keep a stale state (answer True)")
+            return
 
 
 def _check_replay(world: World, module: Module, plan: list[dict[str, np.ndarray]], report: CheckReport) -> None:

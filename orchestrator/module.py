@@ -19,7 +19,8 @@ Lifecycle (the order the world calls a module in; `check_module` verifies it)::
         m.step(t_ns, dt_ns)            # 6. advance state from t_ns to t_ns + dt_ns: read m.inp[...],
                                        #    write m.out[...] in place (`m.out["y"][...] = v`); or all
                                        #    ports at once: m.inp_flat, m.out_flat (declaration order)
-        m.get_state()                  # 7. after each tick, for history (only when can_rollback)
+        m.get_state()                  # 7. after each tick, for history (only when can_rollback;
+                                       #    once per stretch when m.steps_change_state() is False)
     m.set_state(s)                     #    on rollback / restore, between steps, any number of times
     m.on_param(name, value)            #    a run-time parameter changed (also when a rollback changes
                                        #    it back); apply it to whatever depends on it
@@ -282,6 +283,15 @@ class Module:
 
     def set_state(self, state: Any) -> None:
         """Take back a state returned by `get_state` (copy what you keep)."""
+
+    def steps_change_state(self) -> bool:
+        """Whether `step` may change what `get_state` returns. The answer holds until a parameter
+        changes, the structure changes or the world restores a state; the kernel asks again after
+        each. A module that answers False has its state saved once and shared by the states of
+        history that follow, instead of a `get_state` call per tick (a sensor without noise or delay,
+        a servo between programs); it may answer so only if nothing else (no method of its own
+        called between ticks) changes its state meanwhile. True, the default, is always correct."""
+        return True
 
     def on_param(self, name: str, value: Any) -> None:
         """A run-time parameter changed to ``value``; apply it."""

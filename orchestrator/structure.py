@@ -12,18 +12,20 @@ The schedule (the master algorithm, Gauss-Seidel): at each tick,
    copied from their sources, which have already stepped this tick.
 A connection is delayed when written so (``delay: true``) or when its source module is not
 feedthrough (its outputs come from its state: a physics core). Direct connections must form no
-cycle; a cycle is an algebraic loop and is reported with its path.
+cycle; a cycle is an algebraic loop and is reported with its path. The world runs the schedule as one
+generated function per structure (`Structure.compiled`, see `orchestrator.compiled`).
 """
 
 from __future__ import annotations
 
+import functools
 import heapq
-import itertools
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .compiled import CompiledTick
 from .errors import AlgebraicLoopError, WiringError
 from .module import Module, Port
 from .suggest import did_you_mean
@@ -136,10 +138,14 @@ class Structure:
     delayed_gather: Copies = ()
     """Copies made on the bus array rather than on its memoryview: one pair of index arrays, when a
     set of connections has too many separate runs (``delayed`` is then empty)."""
-    capture: tuple[Callable[[], object], ...] = ()
-    """What history saves each tick, per record in record order: a no-argument callable giving the
-    module's state: its bound ``get_state``; NoneType for a module with only parameters (calling it
-    gives None, in C); for one that cannot roll back, one that gives `UNRESTORABLE`."""
+    saves: tuple[int, ...] = ()
+    """What history saves of each record's module, in record order: `SAVE_STATE` (its ``get_state``),
+    `SAVE_PARAMS` (only its parameters: the base ``get_state``) or `SAVE_NONE` (it cannot roll back)."""
+
+    @functools.cached_property
+    def compiled(self) -> CompiledTick:
+        """The tick of this structure as one generated function (see `orchestrator.compiled`)."""
+        return CompiledTick(self)
 
     def record(self, name: str) -> ModuleRecord | None:
         for rec in self.records:
@@ -178,13 +184,11 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
                   and by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
         plan.append(Step(rec, _copies(layout, direct)))
     delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
-    savers = tuple((rec.module, _save_kind(rec.module)) for rec in records)
     dispatch = tuple((st.record.name, st.record.module.step, st.record.period_ns, st.record.period_ticks,
                       st.record.phase, *_split_gather(st.copies)) for st in plan)
     delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
-    capture = tuple(_unrestorable if how == SAVE_NONE else m.get_state if how == SAVE_STATE else type(None)
-                    for m, how in savers)
-    return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather, capture)
+    saves = tuple(_save_kind(rec.module) for rec in records)
+    return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather, saves)
 
 
 class _Unrestorable:
@@ -197,7 +201,6 @@ class _Unrestorable:
 
 UNRESTORABLE = _Unrestorable()
 """What history holds for the state of a module that cannot roll back."""
-_unrestorable = itertools.repeat(UNRESTORABLE).__next__
 
 
 SAVE_NONE, SAVE_PARAMS, SAVE_STATE = 0, 1, 2

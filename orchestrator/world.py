@@ -26,12 +26,23 @@ from typing import Any
 
 import numpy as np
 
+from .compiled import state_saver
 from .core import PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
 from .module import NO_PORTS, PARAM_CHANGES, Module, Port, SetupContext
 from .observers import Observer, WorldEvent, WorldView
-from .structure import UNRESTORABLE, BusLayout, Connection, ModuleRecord, Structure, build_structure, split_signal
+from .structure import (
+    SAVE_NONE,
+    SAVE_PARAMS,
+    UNRESTORABLE,
+    BusLayout,
+    Connection,
+    ModuleRecord,
+    Structure,
+    build_structure,
+    split_signal,
+)
 from .suggest import did_you_mean
 from .units import NS_PER_S, format_duration, parse_duration_ns
 
@@ -51,9 +62,11 @@ class World:
         self._lock = threading.RLock()
         self._history = History(history)
         self._structure = build_structure((), ())
+        # what `_capture` saves, made again after a change of structure or parameters or a restore:
         self._params: tuple[dict[str, Any], ...] = ()  # every module's parameter dict, shared by states
-        self._params_of: Structure | None = None  # ... for this structure
-        self._params_seen = -1  # ... as of this count of `PARAM_CHANGES`
+        self._save_states: Callable[[], tuple] = tuple  # every module's state, in one call
+        self._saver_of: Structure | None = None  # ... for this structure
+        self._saver_seen = -1  # ... as of this count of `PARAM_CHANGES`
         self._buf = np.zeros(0)
         self._mv = memoryview(self._buf)  # the bus again: the tick's copies are cheaper on it
         self._ro = _read_only(self._buf)  # and read-only, for observers
@@ -157,7 +170,7 @@ class World:
             self._history.replace_top(self._capture())
             self._dirty = False
         n = self._tick
-        current = "event"
+        current: str | None = "event"
         try:
             events = self._scheduled.get(n)
             if events:
@@ -166,22 +179,13 @@ class World:
                     current = f"event {label}"
                     action(self)
                 self._source = "api"
-            structure, mv = self._structure, self._mv
-            for dst, src in structure.delayed:
-                mv[dst] = mv[src]
-            if structure.delayed_gather:
-                _gather(self._buf, structure.delayed_gather)
-            t_ns = n * self.dt_ns
-            for current, step, period_ns, period_ticks, phase, copies, gather in structure.dispatch:  # noqa: B007 - `current` names a failing module below
-                if period_ticks != 1 and (n - phase) % period_ticks:
-                    continue
-                for dst, src in copies:
-                    mv[dst] = mv[src]
-                if gather:
-                    _gather(self._buf, gather)
-                step(t_ns, period_ns)
+            current = None
+            compiled = self._structure.compiled  # after the events: they may have changed the structure
+            compiled.run(n, n * self.dt_ns, self._mv, self._buf)
         except Exception as exc:  # roll back to the last good tick, then report
             self._source = "api"
+            if current is None:  # a module's step: the traceback says which
+                current = compiled.failed_module(exc.__traceback__) or "?"
             raise self._rollback_failed_tick(n, current, exc) from exc
         except BaseException:  # KeyboardInterrupt and the like: roll back, re-raise as is
             self._source = "api"
@@ -213,11 +217,29 @@ class World:
     # -- state ----------------------------------------------------------------------------------------
     def _capture(self) -> WorldState:
         structure = self._structure
-        if self._params_of is not structure or self._params_seen != PARAM_CHANGES[0]:
-            self._params = tuple([rec.module._param_values for rec in structure.records])
-            self._params_of, self._params_seen = structure, PARAM_CHANGES[0]
-        states = tuple([get() for get in structure.capture])
-        return WorldState(self._id, self._tick, structure, self._buf.copy(), states, self._params)
+        if self._saver_of is not structure or self._saver_seen != PARAM_CHANGES[0]:
+            self._make_saver(structure)
+        return WorldState(self._id, self._tick, structure, self._buf.copy(), self._save_states(), self._params)
+
+    def _make_saver(self, structure: Structure) -> None:
+        """What each state of history holds until the structure or a parameter changes, or a state is
+        restored: the modules' parameter dicts (one shared tuple), the state of each module whose
+        steps leave it alone (`Module.steps_change_state`: saved now, then shared), and a call to
+        ``get_state`` for the others."""
+        self._params = tuple([rec.module._param_values for rec in structure.records])
+        entries: list[tuple[bool, Any]] = []
+        for rec, how in zip(structure.records, structure.saves, strict=True):
+            module = rec.module
+            if how == SAVE_NONE:
+                entries.append((False, UNRESTORABLE))
+            elif how == SAVE_PARAMS:
+                entries.append((False, None))
+            elif module.steps_change_state():
+                entries.append((True, module.get_state))
+            else:
+                entries.append((False, module.get_state()))
+        self._save_states = state_saver(entries)
+        self._saver_of, self._saver_seen = structure, PARAM_CHANGES[0]
 
     def _apply(self, state: WorldState) -> None:
         if state.structure is not self._structure:
@@ -228,6 +250,7 @@ class World:
                 rec.module._restore_params(params)
                 rec.module.set_state(saved)
         self._tick = state.tick
+        self._saver_of = None  # the states kept as they were may have been restored to others
 
     def _check_restorable(self, state: WorldState, what: str) -> None:
         bad = state.unrestorable()
@@ -728,12 +751,6 @@ def expand_names(names: Sequence[str], known: Sequence[str], kind: str, call: st
         elif name not in out:
             out.append(name)
     return out
-
-
-def _gather(buf: np.ndarray, copies: Sequence[tuple[Any, Any]]) -> None:
-    """Bus copies by index arrays (see `Structure.delayed_gather`)."""
-    for dst, src in copies:
-        buf[dst] = buf[src]
 
 
 def _names(objects: Iterable[str] | str) -> list[str]:

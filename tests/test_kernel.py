@@ -14,7 +14,7 @@ import pytest
 from dynabrain.modules.basic import Constant, Counter, Gain, Integrator, Noise, Sine
 from dynabrain.orchestrator.checks import check_module
 from dynabrain.orchestrator.errors import AlgebraicLoopError, ModuleError, RollbackError, WiringError
-from dynabrain.orchestrator.module import Capabilities, Module, Port
+from dynabrain.orchestrator.module import Capabilities, Module, Param, Port
 from dynabrain.orchestrator.observers import Observer
 from dynabrain.orchestrator.world import World
 
@@ -216,6 +216,84 @@ def test_exception_in_step_rolls_back_and_names_module():
     assert w.get("c.count") == 8.0
 
 
+def test_the_failing_module_is_named_among_many_of_the_same_kind_and_rates():
+    w = World(step="1ms")
+    w.add_module(Counter("c"))
+    for name, at, period in (("b1", 8, None), ("b2", 6, "2ms"), ("b3", 7, None)):
+        w.add_module(Boom(name, at_tick=at), period=period)
+    w.add_module(Counter("late"), period="3ms")
+    w.tick(6)
+    with pytest.raises(ModuleError) as err:
+        w.tick()
+    assert (err.value.module, err.value.tick) == ("b2", 6) and w.tick_count == 6
+    w.remove_module("b2")
+    with pytest.raises(ModuleError) as err:
+        w.tick(2)
+    assert (err.value.module, err.value.tick) == ("b3", 7) and w.get("c.count") == 7.0
+
+
+class Latch(Module):
+    """Counts its steps while ``hold`` is off; its steps leave its state alone while ``hold`` is on."""
+
+    PARAMS = (Param("hold", True, runtime=True),)
+
+    def __init__(self, name, **kw):
+        super().__init__(name, **kw)
+        self.asked = 0
+
+    def outputs(self):
+        return (Port("y", ()),)
+
+    def start(self, t_ns):
+        self._count = 0
+
+    def step(self, t_ns, dt_ns):
+        if not self.params["hold"]:
+            self._count += 1
+        self.out["y"][...] = self._count
+
+    def get_state(self):
+        self.asked += 1
+        return self._count
+
+    def set_state(self, state):
+        self._count = state
+
+    def steps_change_state(self):
+        return not self.params["hold"]
+
+
+def test_a_module_whose_steps_leave_its_state_alone_is_saved_once_and_rolls_back_exactly():
+    w = World(step="1ms")
+    latch = Latch("l")
+    w.add_module(latch)
+    w.add_module(Counter("c"))
+    w.tick(10)
+    assert latch.asked <= 2  # saved once for the stretch (and once when it joined)
+    frames = []
+    for hold, ticks in ((False, 10), (True, 10), (False, 5)):
+        w.set("l.hold", hold)
+        asked = latch.asked
+        for _ in range(ticks):
+            w.tick()
+            frames.append((w._buf.copy(), latch._count))
+        assert latch.asked - asked >= ticks if not hold else latch.asked - asked <= 2
+    assert latch._count == 15
+    w.backtick(25)  # back across both switches
+    assert latch._count == 0 and w.get("l.y") == 0.0
+    replay = []
+    for hold, ticks in ((False, 10), (True, 10), (False, 5)):
+        w.set("l.hold", hold)
+        for _ in range(ticks):
+            w.tick()
+            replay.append((w._buf.copy(), latch._count))
+    assert all(np.array_equal(a, b) and n == m for (a, n), (b, m) in zip(frames, replay, strict=True))
+    w.backtick(7)  # into the held stretch: the state kept for it comes back
+    assert latch._count == 10 and w.get("l.y") == 10.0
+    w.backtick(10)  # into the counting stretch
+    assert latch._count == 8 and not w.modules["l"].params["hold"]
+
+
 def test_snapshot_restore_and_fork_independence():
     w = _world()
     w.tick(10)
@@ -340,6 +418,16 @@ def test_check_module_finds_a_module_that_forgets_state():
 
     report = check_module(Leaky("leaky"))
     assert not report.ok and any("replay" in p for p in report.problems)
+
+
+def test_check_module_finds_a_module_that_says_its_steps_leave_its_state_alone_and_changes_it():
+    class Liar(Latch):
+        def steps_change_state(self):
+            return False
+
+    assert check_module(Latch("honest", hold=False)).ok and check_module(Latch("held")).ok
+    report = check_module(Liar("liar", hold=False))
+    assert any("steps_change_state() said False, and the step at tick" in p for p in report.problems), report
 
 
 def test_events_say_whether_the_scenario_or_a_caller_made_them():

@@ -164,6 +164,29 @@ def test_delay_is_whole_periods_of_past_readings_and_noise_is_seeded():
     assert np.array_equal(again, noisy) and not np.array_equal(other, noisy)
 
 
+def test_noise_switched_on_and_off_while_running_rolls_back_bit_for_bit():
+    world = World("enc", step="2ms", seed=3, history=100, core=humanoid_core())
+    enc = Encoders("enc", targets=["l_knee"])
+    world.add_module(enc)
+    world.tick(5)
+    assert not enc.steps_change_state()  # no noise, no delay: history keeps one state for the stretch
+
+    def run() -> list[float]:
+        readings = []
+        for noise in (0.01, 0.0, 0.02):
+            world.set("enc.noise", noise)
+            for _ in range(10):
+                world.tick()
+                readings.append(float(world.get("enc.q")[0]))
+        return readings
+
+    first = run()
+    assert enc.steps_change_state() and len(set(first[20:])) == 10
+    world.backtick(30)
+    assert run() == first  # the same draws: the generator's state came back with each tick
+    world.close()
+
+
 @pytest.mark.parametrize("make", [
     lambda: ForceSensor("ft", targets=["l_foot_ft"], noise=0.5, torque_noise=0.01, delay="4ms"),
     lambda: Accelerometer("acc", targets=["imu"], noise=0.1),
