@@ -13,9 +13,10 @@ Choices (see also `mujoco_scene`):
 - ports are block ports (``body_pos`` ...) written with one array operation each; every named object
   has its own port as a view into a block (a joint's ``q``, ``qd``, ``force`` and an actuator's ``ctrl``
   have shape (1,), like the other modules' one-value signals). Body velocities come from MuJoCo frame-velocity sensors
-  the core adds for moving bodies (computed in C, one copy per step). Per-sensor ports are views into
-  blocks grouped by sensor dimension (``sensor_d3`` is (n, 3)), because ``Port.view_of`` selects one
-  row; ``sensordata`` holds all the model's sensor values in MuJoCo's order;
+  the core adds for moving bodies (computed in C). ``sensordata`` holds all the model's sensor values
+  in MuJoCo's order, and each sensor's port (``sensor.<name>``) is a view into it. The outputs are
+  declared in the order of the MuJoCo arrays they come from, so a step writes them all with five
+  memory copies (poses, joints, and one run of sensordata for the sensors and the velocities);
 - structural edits (`make`, `make_joint`, `no_collision`) recompile the model (`mujoco_scene`);
   each compiled structure is cached by its edits, so a rollback across an edit costs a dictionary
   look-up. The state is ``(edits, integration state array, sensor values)`` (see `STATE`).
@@ -33,7 +34,7 @@ import mujoco
 import numpy as np
 
 from dynabrain.orchestrator.core import BodyInfo, EditedCore, SceneSpec
-from dynabrain.orchestrator.errors import PhysicsDivergedError
+from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
 from dynabrain.orchestrator.module import Param, Port, SetupContext
 
 from . import mujoco_scene as ms
@@ -63,6 +64,10 @@ DEFAULT_PERIOD_S = 0.002
 def _plain(array: np.ndarray) -> bool:
     """A 1-D, contiguous float64 array (one a memoryview copies with memcpy)."""
     return array.ndim == 1 and array.dtype == np.float64 and array.flags.c_contiguous
+
+
+def _empty(index: slice | np.ndarray) -> bool:
+    return index.stop <= index.start if isinstance(index, slice) else not len(index)
 
 
 def _move(dst: np.ndarray, di, src: np.ndarray, si) -> tuple:
@@ -172,17 +177,25 @@ class MujocoCore(EditedCore):
         self._apply_params(self._s)
         mujoco.mj_forward(model, self._s.data)
         self._ports_in, self._ports_out = self._make_ports()
+        self._ports_size = {p.name: p.size for p in self._ports_out if p.view_of is None}
         self._unbind()
 
     # -- ports --------------------------------------------------------------------------------------------
     def _make_ports(self) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
-        lay, outs, ins = self._layout, [], []
-        if lay.bodies:
-            for block, q, n, unit in (("body_pos", "pos", 3, "m"), ("body_quat", "quat", 4, "1"),
-                                      ("body_linvel", "linvel", 3, "m/s"),
-                                      ("body_angvel", "angvel", 3, "rad/s")):
+        """Block ports, each object's port a view into one. The outputs come in the order of the
+        arrays they are copied from, so that a step fills them with few copies: poses (xpos, xquat),
+        joints (qpos, qvel), then the model's sensors and the body velocities (one run of sensordata)."""
+        lay, outs, ins, views = self._layout, [], [], []
+        body_blocks = (("body_pos", "pos", 3, "m"), ("body_quat", "quat", 4, "1"),
+                       ("body_linvel", "linvel", 3, "m/s"), ("body_angvel", "angvel", 3, "rad/s"))
+
+        def bodies(blocks: tuple) -> None:
+            for block, q, n, unit in blocks:
                 outs.append(Port(block, (len(lay.bodies), n), unit, doc=f"{q} of every body"))
-                outs += [Port(f"{b}.{q}", (n,), unit, view_of=(block, i)) for i, b in enumerate(lay.bodies)]
+                views.extend(Port(f"{b}.{q}", (n,), unit, view_of=(block, i)) for i, b in enumerate(lay.bodies))
+
+        if lay.bodies:
+            bodies(body_blocks[:2])
         if lay.qjoints:
             units = list(zip(*lay.qunits, strict=True))
             uq, uf = (u[0] if len(set(u)) == 1 else "1" for u in units)
@@ -190,25 +203,18 @@ class MujocoCore(EditedCore):
             outs += [Port("joint_q", (len(lay.qjoints),), uq), Port("joint_qd", (len(lay.qjoints),), uqd)]
             ins.append(Port("joint_force", (len(lay.qjoints),), uf))
             for i, (j, (q, f)) in enumerate(zip(lay.qjoints, lay.qunits, strict=True)):
-                outs += [Port(f"{j}.q", (), q, view_of=("joint_q", i)),
-                         Port(f"{j}.qd", (), f"{q}/s", view_of=("joint_qd", i))]
+                views += [Port(f"{j}.q", (), q, view_of=("joint_q", i)),
+                          Port(f"{j}.qd", (), f"{q}/s", view_of=("joint_qd", i))]
                 ins.append(Port(f"{j}.force", (), f, view_of=("joint_force", i)))
         if lay.actuators:
             ins.append(Port("ctrl", (len(lay.actuators),), "1"))
             ins += [Port(f"{a}.ctrl", (), "1", view_of=("ctrl", i)) for i, a in enumerate(lay.actuators)]
         if lay.sensors:
             outs.append(Port("sensordata", (lay.nsensordata,), "1", doc="all sensor values, MuJoCo order"))
-            for dim, members in self._sensor_groups().items():
-                outs.append(Port(f"sensor_d{dim}", (len(members), dim), "1"))
-                outs += [Port(f"sensor.{n}", (dim,), "1", view_of=(f"sensor_d{dim}", k))
-                         for k, (n, _a) in enumerate(members)]
-        return tuple(ins), tuple(outs)
-
-    def _sensor_groups(self) -> dict[int, list[tuple[str, int]]]:
-        groups: dict[int, list[tuple[str, int]]] = {}
-        for name, dim, adr in self._layout.sensors:
-            groups.setdefault(dim, []).append((name, adr))
-        return groups
+            views += [Port(f"sensor.{n}", (dim,), "1", view_of=("sensordata", adr)) for n, dim, adr in lay.sensors]
+        if lay.bodies:
+            bodies(body_blocks[2:])
+        return tuple(ins), tuple(outs + views)
 
     def inputs(self) -> Sequence[Port]:
         return self._ports_in
@@ -217,36 +223,40 @@ class MujocoCore(EditedCore):
         return self._ports_out
 
     def _unbind(self) -> None:
-        """Private buffers in place of the bus: the step code never tests for missing ports."""
+        """A private buffer in place of the bus (laid out as the bus lays out the outputs): the step
+        code never tests for missing ports."""
+        self._own_out = np.zeros(sum(p.size for p in self._ports_out if p.view_of is None))
+        self._out_views(self._own_out)
         lay = self._layout
-        nb, nj, ns = len(lay.bodies), len(lay.qjoints), lay.nsensordata
-        self._pos, self._quat, self._lin, self._ang = (np.zeros(k * nb) for k in (3, 4, 3, 3))
-        self._q, self._qd, self._sd = np.zeros(nj), np.zeros(nj), np.zeros(ns)
-        self._force, self._ctrl = np.zeros(nj), np.zeros(len(lay.actuators))
-        self._groups: list[tuple[np.ndarray, np.ndarray]] = []
-        self._copy_back: list[tuple[np.ndarray, np.ndarray]] = []
-        self._moves: tuple | None = None  # (structure, copies) of `_write_outputs`, made on first use
+        self._force, self._ctrl = np.zeros(len(lay.qjoints)), np.zeros(len(lay.actuators))
+        self._moves: tuple | None = None  # (structure, copies) of `step`, made on first use
+
+    def _out_views(self, flat: np.ndarray) -> None:
+        """``self._out`` (every output, flat, in declaration order), the offset of each block in it,
+        and a flat view of each block."""
+        self._out, self._offset, at = flat, {}, 0
+        for port in self._ports_out:
+            if port.view_of is None:
+                self._offset[port.name] = at
+                at += port.size
+
+        def block(name: str) -> np.ndarray:
+            start = self._offset.get(name)
+            return flat[start:start + self._ports_size[name]] if start is not None else np.zeros(0)
+
+        self._pos, self._quat, self._lin, self._ang = (block(f"body_{q}") for q in ("pos", "quat", "linvel", "angvel"))
+        self._q, self._qd, self._sd = block("joint_q"), block("joint_qd"), block("sensordata")
 
     def bind(self) -> None:
         self._unbind()
-        for attr, key in (("_pos", "body_pos"), ("_quat", "body_quat"), ("_lin", "body_linvel"),
-                          ("_ang", "body_angvel"), ("_q", "joint_q"), ("_qd", "joint_qd"), ("_sd", "sensordata")):
-            if self.out.get(key) is not None:
-                setattr(self, attr, self._flat(self.out[key]))
+        if self.out_flat.size == self._own_out.size:  # bound to the bus: write there
+            self._out_views(self.out_flat)
+        elif self.out:
+            raise DynabrainError(f"core {self.name!r}: its outputs are bound without `out_flat`; the core writes "
+                                 "them through it (bind as the World does)")
         for attr, key in (("_force", "joint_force"), ("_ctrl", "ctrl")):
             if self.inp.get(key) is not None:
                 setattr(self, attr, np.asarray(self.inp[key]).reshape(-1))
-        for dim, members in self._sensor_groups().items():
-            block = self.out.get(f"sensor_d{dim}")
-            if block is not None:
-                self._groups.append((block, np.array([[a + k for k in range(dim)] for _n, a in members], dtype=int)))
-
-    def _flat(self, array: np.ndarray) -> np.ndarray:
-        """A flat view of an output array; a buffer copied back after each write if it has none."""
-        flat = array.reshape(-1)
-        if not np.shares_memory(flat, array):
-            self._copy_back.append((array, flat))
-        return flat
 
     # -- lifecycle --------------------------------------------------------------------------------------------
     def setup(self, ctx: SetupContext) -> None:
@@ -271,7 +281,8 @@ class MujocoCore(EditedCore):
         bad = s.warn_pos.number + s.warn_vel.number + s.warn_acc.number
         if bad != s.warn_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
             raise PhysicsDivergedError(self.name, "step", None, self._divergence(s, bad))
-        self._write_outputs(s)
+        for dst, di, src, si in moves[2]:  # the outputs that can change in a step (`_write_outputs`)
+            dst[di] = src[si]
 
     def get_state(self) -> tuple:
         s = self._s
@@ -348,28 +359,34 @@ class MujocoCore(EditedCore):
             moves = self._moves = (s, *self._plan_moves(s))
         for dst, di, src, si in moves[2]:
             dst[di] = src[si]
-        if s.nsens:
-            for block, idx in self._groups:
-                block[...] = self._sd[idx]  # a fancy read and a plain write: ~4x cheaper than np.take(out=)
-        for array, flat in self._copy_back:
-            np.copyto(array, flat.reshape(array.shape))
 
     def _plan_moves(self, s: _Structure) -> tuple[list[tuple], list[tuple]]:
         """The copies `step` makes from the inputs and `_write_outputs` into the outputs, as
-        (dst, index, src, index). Where both indexes are slices the copy goes through memoryviews (a
-        memcpy, ~4x cheaper than a numpy slice copy)."""
+        (dst, index, src, index). Copies of neighbouring runs of one array into neighbouring outputs
+        are merged, and where both indexes are slices the copy goes through memoryviews (a memcpy,
+        ~4x cheaper than a numpy slice copy)."""
         ins = []
         if s.njoint:
             ins.append((s.qfrc, s.dadr, self._force, s.jrows))
         if len(s.ctrl):
             ins.append((s.ctrl, slice(None), self._ctrl, s.act_src))
-        pairs = [(self._pos, s.mv3, s.xpos, s.mv_id3), (self._quat, s.mv4, s.xquat, s.mv_id4),
-                 (self._lin, s.mv3, s.sensordata, s.lin), (self._ang, s.mv3, s.sensordata, s.ang)]
-        if s.njoint:
-            pairs += [(self._q, s.jrows, s.qpos, s.qadr), (self._qd, s.jrows, s.qvel, s.dadr)]
-        if s.nsens:
-            pairs.append((self._sd, s.sens_rows, s.sensordata, s.sens_src))
-        return [_move(*p) for p in ins], [_move(*p) for p in pairs]
+        outs: list[list] = []  # [dst index in self._out, src array, src index], in output order
+        for block, rows, src, index in (("body_pos", s.mv3, s.xpos, s.mv_id3), ("body_quat", s.mv4, s.xquat, s.mv_id4),
+                                        ("joint_q", s.jrows, s.qpos, s.qadr), ("joint_qd", s.jrows, s.qvel, s.dadr),
+                                        ("sensordata", s.sens_rows, s.sensordata, s.sens_src),
+                                        ("body_linvel", s.mv3, s.sensordata, s.lin),
+                                        ("body_angvel", s.mv3, s.sensordata, s.ang)):
+            at = self._offset.get(block)
+            if at is None or _empty(rows):
+                continue
+            dst = slice(at + rows.start, at + rows.stop) if isinstance(rows, slice) else rows + at
+            last = outs[-1] if outs else None
+            runs = last is not None and all(isinstance(x, slice) for x in (last[0], last[2], dst, index))
+            if runs and last[1] is src and last[0].stop == dst.start and last[2].stop == index.start:
+                last[0], last[2] = slice(last[0].start, dst.stop), slice(last[2].start, index.stop)
+            else:
+                outs.append([dst, src, index])
+        return [_move(*p) for p in ins], [_move(self._out, dst, src, index) for dst, src, index in outs]
 
     def _write_all(self) -> None:
         """Every output, with the constant ones of static and frozen bodies and joints."""

@@ -68,8 +68,10 @@ class Port:
     """A named, typed slot on the signal bus. Values are float64 arrays of ``shape``.
 
     ``view_of`` makes this port a view into a block port of the same module:
-    ``("body_pos", 3)`` is row 3 of ``body_pos``. Block ports let a module write many values with
-    one array operation while each still has a name of its own.
+    ``("body_pos", 3)`` is row 3 of ``body_pos`` (n, 3); of a one-dimensional block it is the run of
+    ``size`` elements from element 3 (``("sensordata", 3)`` with shape (3,): elements 3 to 5). Block
+    ports let a module write many values with one array operation while each still has a name of
+    its own.
     """
 
     name: str

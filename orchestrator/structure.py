@@ -103,9 +103,14 @@ class BusLayout:
         if base is None or base.port.view_of is not None:
             raise WiringError(f"module {rec.name!r}: port {port.name!r} is a view of {base_name!r}, "
                               "which is not a block port of the module")
+        if len(base.shape) == 1:  # a run of elements from ``index``
+            if not 0 <= index <= base.size - port.size:
+                raise WiringError(f"module {rec.name!r}: port {port.name!r} of shape {port.shape} does not fit "
+                                  f"{base_name!r} {base.shape} from element {index}")
+            return Slot(base.start + index, port.size, port.shape, port, direction)
         row = int(np.prod(base.shape[1:], dtype=np.int64)) if len(base.shape) > 1 else 1
         if not base.shape or not 0 <= index < base.shape[0] or port.size != row:
-            raise WiringError(f"module {rec.name!r}: port {port.name!r} ({port.shape}) does not fit "
+            raise WiringError(f"module {rec.name!r}: port {port.name!r} of shape {port.shape} does not fit "
                               f"row {index} of {base_name!r} {base.shape}")
         return Slot(base.start + index * row, row, port.shape, port, direction)
 

@@ -14,19 +14,26 @@ FLOOR = BodySpec("floor", "plane", ())
 
 
 def bind(core: PhysicsCore) -> tuple[dict, dict]:
-    """Allocate block ports and views like the kernel, then bind the core."""
-    inp: dict[str, np.ndarray] = {}
-    out: dict[str, np.ndarray] = {}
-    for ports, dst in ((core.inputs(), inp), (core.outputs(), out)):
-        for p in ports:
-            if p.view_of is None:
-                dst[p.name] = np.zeros(p.shape)
+    """Lay the ports out like the kernel (each direction's own ports in a row of one flat buffer,
+    the ``view_of`` ports as views into them), then bind the core."""
+    bound: list = [{}, {}]
+    flats = []
+    for ports, dst in zip((core.inputs(), core.outputs()), bound, strict=True):
+        own = [p for p in ports if p.view_of is None]
+        flat = np.zeros(sum(p.size for p in own))
+        at = 0
+        for p in own:
+            dst[p.name] = flat[at:at + p.size].reshape(p.shape)
+            at += p.size
         for p in ports:
             if p.view_of is not None:
-                view = dst[p.view_of[0]][p.view_of[1], ...].reshape(p.shape)
-                assert np.shares_memory(view, dst[p.view_of[0]]), p.name
+                base, at = dst[p.view_of[0]], p.view_of[1]
+                view = (base[at:at + p.size] if base.ndim == 1 else base[at]).reshape(p.shape)
+                assert np.shares_memory(view, base), p.name
                 dst[p.name] = view
-    core.inp, core.out = inp, out
+        flats.append(flat)
+    inp, out = bound
+    core._take_ports((inp, out, flats[0], flats[1]))
     core.bind()
     return inp, out
 

@@ -503,3 +503,28 @@ def test_flat_port_views_follow_declaration_order_and_survive_rebinding_and_fork
     assert f.get("m.sum") == 5.0 and w.get("m.sum") == 3.0  # the fork writes its own bus
     f.close()
     w.close()
+
+
+class Runs(Module):
+    """A one-dimensional block with views of element runs of it."""
+
+    def __init__(self, name, views, **kw):
+        super().__init__(name, **kw)
+        self.views = views
+
+    def outputs(self):
+        return (Port("data", (6,)), *(Port(n, shape, view_of=("data", at)) for n, shape, at in self.views))
+
+    def step(self, t_ns, dt_ns):
+        self.out_flat[:] = range(6)
+
+
+def test_a_view_of_a_one_dimensional_block_is_a_run_of_its_elements():
+    w = World(step="1ms")
+    w.add_module(Runs("r", [("one", (), 5), ("pair", (2,), 1), ("four", (4,), 2)]))
+    w.tick()
+    assert w.get("r.one") == 5.0 and w.get("r.pair").tolist() == [1.0, 2.0] and w.get("r.four").tolist() == [2, 3, 4, 5]
+    for bad in [("late", (2,), 5), ("before", (), -1)]:
+        with pytest.raises(WiringError, match=rf"port {bad[0]!r} of shape .* does not fit 'data' \(6,\) from element"):
+            w.add_module(Runs("bad", [bad]))
+    assert list(w.modules) == ["r"]
