@@ -33,15 +33,13 @@ port            shape    unit  meaning
 
 from __future__ import annotations
 
-import math
-
 import mujoco
 import numpy as np
 
 from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
 
 from .mjaccess import MujocoLink, fail
-from .support import contact_pressure, convex_hull, polygon_centre, polygon_margin
+from .support import ContactOverflowError, feet_support
 
 _CONTACT = int(mujoco.mjtSensor.mjSENS_CONTACT)
 _FOOT_OBJECTS = (int(mujoco.mjtObj.mjOBJ_XBODY), int(mujoco.mjtObj.mjOBJ_BODY))  # subtree1=, body1=
@@ -98,6 +96,7 @@ class ZmpSensor(Module):
             normal += [adr + j * slot + offset["force"] for j in range(num)]  # the force's first component
             points += [adr + j * slot + offset["pos"] + i for j in range(num) for i in range(3)]
         self._index = np.array(found + normal + points, dtype=np.intp)
+        self._nums = [num for _foot, _name, num in self._sensors]
 
     def _contact_sensor(self, foot: str) -> tuple[str, int, int, int, dict[str, int]]:
         """The foot's native contact sensor: (name, sensordata address, values per contact, contacts it
@@ -140,39 +139,12 @@ class ZmpSensor(Module):
         if link.core._s is not link._seen:
             link.changed()
             self._resolve()
-        values = link.data.sensordata[self._index].tolist()
-        least = self._param_values["min_force"]
-        k = len(self._sensors)
-        at_force, at_point = k, k + sum(num for _f, _n, num in self._sensors)
-        cops, forces, loaded, polygon = [], [], [], []
-        total = x = y = z = 0.0
-        for (foot, name, num), found in zip(self._sensors, values[:k], strict=True):
-            if found > num:
-                raise RuntimeError(f"foot {foot!r}: its contact sensor {name!r} found {found:.0f} contacts and holds "
-                                   f"{num} (num={num}): raise num, or the centre of pressure misses contacts")
-            normal, points = values[at_force:at_force + num], values[at_point:at_point + 3 * num]
-            at_force, at_point = at_force + num, at_point + 3 * num
-            cop, fn = contact_pressure(normal, points)
-            on = fn >= least and fn > 0.0
-            loaded.append(on)
-            if on:
-                cops += cop
-                forces.append(fn)
-                total, x, y, z = total + fn, x + cop[0] * fn, y + cop[1] * fn, z + cop[2] * fn
-                polygon += [points[3 * j:3 * j + 3] for j in range(num) if normal[j] > 0.0]
-            else:
-                cops += _NAN3
-                forces.append(0.0)
-        zmp = (x / total, y / total, z / total) if total > 0.0 else _NAN3
-        inside, margin, centre = 0.0, math.nan, _NAN3
-        if polygon:
-            hull = convex_hull(polygon)
-            distance = polygon_margin(zmp, hull)
-            if math.isfinite(distance):
-                margin = distance
-                inside = 1.0 if distance >= self._param_values["min_margin"] and len(hull) >= 3 else 0.0
-            centre = (*polygon_centre(hull), sum(p[2] for p in polygon) / len(polygon))
-        self.out_flat[:] = [*zmp, *cops, *forces, inside, margin, *centre]  # in the order `outputs` declares
-
-
-_NAN3 = (math.nan, math.nan, math.nan)
+        p = self._param_values
+        try:
+            values = feet_support(link.data.sensordata[self._index].tolist(), self._nums, p["min_force"],
+                                  p["min_margin"])
+        except ContactOverflowError as exc:
+            foot, name, num = self._sensors[exc.foot]
+            raise RuntimeError(f"foot {foot!r}: its contact sensor {name!r} found {exc.found} contacts and holds "
+                               f"{num} (num={num}): raise num, or the centre of pressure misses contacts") from None
+        self.out_flat[:] = values  # every output, in the order `outputs` declares them
