@@ -1,4 +1,4 @@
-"""Read access to the MuJoCo core for modules that need native quantities (sensors, contacts, rules).
+"""Access to the MuJoCo core for modules that need native quantities (sensors, contacts, rules).
 
 Most modules should talk to the physics core through the bus (``core.<joint>.q``, ``core.sensor.<name>``,
 ``core.<body>.pos``). Some need what the bus does not carry: MuJoCo's native sensors located by
@@ -18,8 +18,11 @@ Contract of a link:
   inputs: the same latency as a signal read from the core over the bus), the state after the core's
   step otherwise. The core keeps its data "after ``mj_step1``": positions, velocities, contacts and
   velocity-stage sensors are those of the current state; acceleration-stage sensors (force, torque,
-  accelerometer) are those computed during the core's last step;
-- a link is copied with the module on `World.fork` (the copied module then reads the copied core).
+  accelerometer, contact) are those computed during the core's last step;
+- a link is copied with the module on `World.fork` (the copied module then reads the copied core);
+- a module reads through it; the one exception is a rule that changes what physics cannot (breakout's
+  vanishing blocks switch geoms off in the current model): it keeps what it changed in its own state
+  and applies it again after every restore and every switch of the core's structure.
 """
 
 from __future__ import annotations
