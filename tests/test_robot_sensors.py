@@ -7,13 +7,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 
-from dynabrain.modules.mujoco_core import MujocoCore
+from dynabrain.modules.mujoco_core import STATE, MujocoCore
 from dynabrain.modules.sensors import Accelerometer, Encoders, ForceSensor, Gyro
 from dynabrain.modules.servo import Servo
-from dynabrain.modules.support import convex_hull, polygon_margin
+from dynabrain.modules.support import convex_hull, feet_support, polygon_margin
 from dynabrain.modules.zmp import ZmpSensor
 from dynabrain.orchestrator.checks import check_module
 from dynabrain.orchestrator.core import SceneSpec
@@ -113,6 +114,47 @@ def test_zmp_of_a_static_stance_is_the_projection_of_the_centre_of_mass(pose):
     cops = world.get("zmp.cop")  # each foot's centre of pressure lies under that foot
     assert cops[0][1] > 0.0 > cops[1][1]
     world.close()
+
+
+def test_zmp_of_a_swaying_robot_equals_the_pressure_centre_of_mujocos_contact_forces():
+    """While the robot sways and slips (friction forces matter), each foot's centre of pressure and
+    normal force, as the sensor decodes its contact sensor, equal those computed from MuJoCo's contact
+    list with mj_contactForce: taken after a full mj_step, both describe the same contacts."""
+    world = standing(zmp=ZmpSensor("zmp", targets=["l_foot", "r_foot"]), settle=1.0)
+    zmp, core = world.modules["zmp"], world.core
+    m, d = core._s.model, mujoco.MjData(core._s.model)
+    mujoco.mj_setState(m, d, core.get_state()[1], STATE)
+    foot_of = {g: k for k, foot in enumerate(("l_foot", "r_foot")) for g in range(m.ngeom)
+               if _under(m, int(m.geom_bodyid[g]), m.body(foot).id)}
+    d.ctrl[:] = world.get("servo.ctrl")
+    wrench, checked = np.zeros(6), 0
+    for k in range(300):
+        d.xfrc_applied[m.body("pelvis").id] = [12 * np.sin(k * 0.05), 6 * np.cos(k * 0.07), 0, 0, 0, 0]
+        mujoco.mj_step(m, d)
+        out = feet_support(d.sensordata[zmp._index].tolist(), zmp._nums, 1.0, 0.0)
+        force, moment = np.zeros(2), np.zeros((2, 3))
+        for i in range(d.ncon):
+            c = d.contact[i]
+            k_foot = foot_of.get(int(c.geom[0]), foot_of.get(int(c.geom[1])))
+            if k_foot is None:
+                continue
+            mujoco.mj_contactForce(m, d, i, wrench)
+            force[k_foot] += wrench[0]
+            moment[k_foot] += wrench[0] * c.pos
+        for k_foot in range(2):
+            assert out[9 + k_foot] == pytest.approx(force[k_foot], rel=1e-9, abs=1e-9)
+            if force[k_foot] >= 1.0:
+                cop = out[3 + 3 * k_foot:6 + 3 * k_foot]
+                assert np.allclose(cop, moment[k_foot] / force[k_foot], rtol=0, atol=1e-12)
+                checked += 1
+    assert checked > 300  # both feet loaded most of the time
+    world.close()
+
+
+def _under(m: mujoco.MjModel, body: int, ancestor: int) -> bool:
+    while body != ancestor and body != 0:
+        body = int(m.body_parentid[body])
+    return body == ancestor
 
 
 def test_zmp_follows_a_structure_switch_and_reads_nan_in_the_air():
