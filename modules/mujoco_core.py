@@ -304,7 +304,11 @@ class MujocoCore(EditedCore):
 
     def on_param(self, name: str, value: Any) -> None:
         self._check_param(name, value)
-        self._apply_params(self._s)
+        s = self._s
+        self._apply_params(s)
+        # the data is kept after mj_step1, computed with the old values (gravity's bias forces, the
+        # contacts' friction and stiffness): compute it again, as restoring this state would
+        mujoco.mj_step1(s.model, s.data)
 
     def close(self) -> None:
         self._cache.clear()
