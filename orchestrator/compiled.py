@@ -3,8 +3,8 @@ saver as another.
 
 The kernel's hot loop walks the schedule every tick: for each module, test its phase, make the copies
 its inputs need, call its step. Walking a list of entries costs a few hundred nanoseconds per module
-and tick (unpacking, empty loops, branches) on top of the step itself. When a structure is installed,
-`compile_tick` writes that walk out as straight-line source, one statement per copy and per step,
+and tick (unpacking, empty loops, branches) on top of the step itself. For each structure,
+`CompiledTick` writes that walk out as straight-line source, one statement per copy and per step,
 with the steps and index arrays bound as fast locals, and compiles it. A structure changes only on an
 edit (add, remove, connect, ...), and keeps its function (`Structure.compiled`), so one compilation
 serves every tick of the structure, rollbacks across edits included.
@@ -12,6 +12,10 @@ serves every tick of the structure, rollbacks across edits included.
 The generated function has one line per module step (with its copies just before), so an exception's
 traceback says which module was running: `CompiledTick.failed_module` reads it back. ``source``
 keeps the text, for whoever wants to see what a tick does.
+
+History's `state_saver` is the same idea for the states saved after each tick: one generated
+function returns every module's state as a tuple, calling ``get_state`` only where a step may have
+changed the state and holding the others as values.
 """
 
 from __future__ import annotations
@@ -97,5 +101,7 @@ def state_saver(entries: Sequence[tuple[bool, Any]]) -> Callable[[], tuple]:
                   "    return save\n")
         namespace: dict[str, Any] = {}
         exec(compile(source, "<dynabrain state saver>", "exec"), namespace)  # our own generated source
+        if len(_SAVERS) >= 256:  # patterns come and go with edits: keep the cache small
+            _SAVERS.clear()
         make = _SAVERS[pattern] = namespace["make"]
     return make(*(value for _call, value in entries))
