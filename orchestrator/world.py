@@ -179,8 +179,8 @@ class World:
                     current = f"event {label}"
                     action(self)
                 self._source = "api"
-            current = None
             compiled = self._structure.compiled  # after the events: they may have changed the structure
+            current = None
             compiled.run(n, n * self.dt_ns, self._mv, self._buf)
         except Exception as exc:  # roll back to the last good tick, then report
             self._source = "api"
