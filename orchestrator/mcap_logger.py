@@ -95,7 +95,7 @@ class McapLogger(Observer):
 
     def __init__(self, path: str | os.PathLike[str], *, decimate: int = 1, scene_every: int | None = None,
                  window: int = 64, batch: int = 256, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
-                 level: int = 1, writer: str = "process"):
+                 level: int = -1, writer: str = "process"):
         for name, value, low in (("decimate", decimate, 1), ("window", window, 0), ("batch", batch, 1),
                                  ("scene_every", scene_every or 1, 1), ("chunk_bytes", chunk_bytes, 1)):
             if not isinstance(value, int) or value < low:
