@@ -177,7 +177,6 @@ class MujocoCore(EditedCore):
         self._apply_params(self._s)
         mujoco.mj_forward(model, self._s.data)
         self._ports_in, self._ports_out = self._make_ports()
-        self._ports_size = {p.name: p.size for p in self._ports_out if p.view_of is None}
         self._unbind()
 
     # -- ports --------------------------------------------------------------------------------------------
@@ -234,18 +233,15 @@ class MujocoCore(EditedCore):
     def _out_views(self, flat: np.ndarray) -> None:
         """``self._out`` (every output, flat, in declaration order), the offset of each block in it,
         and a flat view of each block."""
-        self._out, self._offset, at = flat, {}, 0
+        self._out, self._offset, at, blocks = flat, {}, 0, {}
         for port in self._ports_out:
             if port.view_of is None:
-                self._offset[port.name] = at
+                self._offset[port.name], blocks[port.name] = at, flat[at:at + port.size]
                 at += port.size
-
-        def block(name: str) -> np.ndarray:
-            start = self._offset.get(name)
-            return flat[start:start + self._ports_size[name]] if start is not None else np.zeros(0)
-
-        self._pos, self._quat, self._lin, self._ang = (block(f"body_{q}") for q in ("pos", "quat", "linvel", "angvel"))
-        self._q, self._qd, self._sd = block("joint_q"), block("joint_qd"), block("sensordata")
+        empty = np.zeros(0)
+        self._pos, self._quat, self._lin, self._ang = (blocks.get(f"body_{q}", empty)
+                                                       for q in ("pos", "quat", "linvel", "angvel"))
+        self._q, self._qd, self._sd = (blocks.get(k, empty) for k in ("joint_q", "joint_qd", "sensordata"))
 
     def bind(self) -> None:
         self._unbind()
