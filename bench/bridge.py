@@ -61,10 +61,10 @@ def floor_server(port: int) -> None:
     from dynabrain.bridge import frames
     from dynabrain.bridge.zenoh_io import FRAME, Settings, open_session
     from dynabrain.modules.basic import Noise
-    from dynabrain.orchestrator.observers import WorldView
-    from dynabrain.orchestrator.world import World
+    from dynabrain.orchestrator import load_world
+    from dynabrain.orchestrator.kernel.observers import WorldView
 
-    world = World.from_scenario(os.path.join(ROOT, "bridge", "arm.yaml"))
+    world = load_world(os.path.join(ROOT, "bridge", "arm.yaml"))
     world.add_module(Noise("noise", n=NOISE_CHANNELS, sigma=0.1))
     world.set("servo.target", [0.4, 0.6, -0.9])
     slots = WorldView(world).signal_slots()
@@ -117,9 +117,9 @@ def server_side_cost(view_signals: list[str], calls: int = 2000) -> tuple[float,
     from dynabrain.bridge import protocol as p
     from dynabrain.bridge.calls import WorldService
     from dynabrain.modules.basic import Noise
-    from dynabrain.orchestrator.world import World
+    from dynabrain.orchestrator import load_world
 
-    world = World.from_scenario(os.path.join(ROOT, "bridge", "arm.yaml"))
+    world = load_world(os.path.join(ROOT, "bridge", "arm.yaml"))
     world.add_module(Noise("noise", n=NOISE_CHANNELS, sigma=0.1))
     service = WorldService(world, instance=1)
     args = p.TickArgs(n=1, view=service.do_view(p.ViewArgs(signals=view_signals))["view"])

@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 from timing import best_of
 
-from dynabrain.modules.exudyn_core import ExudynCore
-from dynabrain.modules.mujoco_core import MujocoCore
-from dynabrain.orchestrator.core import BodySpec, SceneSpec
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.world import World
+from dynabrain.modules.exudyn.core import ExudynCore
+from dynabrain.modules.mujoco.core import MujocoCore
+from dynabrain.orchestrator.kernel.core import BodySpec, SceneSpec
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 TICK = 0.002

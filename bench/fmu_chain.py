@@ -30,8 +30,8 @@ from timing import best_of
 from dynabrain.orchestrator.fmu import load_fmu_info
 from dynabrain.orchestrator.fmu.build import compiler
 from dynabrain.orchestrator.fmu.module import FMUModule
-from dynabrain.orchestrator.module import Capabilities
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.module import Capabilities
+from dynabrain.orchestrator.kernel.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
 N_FMUS, STEPS, DT_NS, CHANNELS = 10, 10_000, 1_000_000, 4

@@ -27,14 +27,14 @@ import numpy as np
 from timing import best_of_each
 
 from dynabrain.modules.floor import TWO_PI, MovingFloor, wave
-from dynabrain.modules.mujoco_core import STATE, MujocoCore
+from dynabrain.modules.mujoco.core import STATE, MujocoCore
 from dynabrain.modules.sensors import Accelerometer, Encoders, ForceSensor, Gyro
 from dynabrain.modules.servo import Servo
 from dynabrain.modules.support import feet_support
 from dynabrain.modules.zmp import ZmpSensor
-from dynabrain.orchestrator.core import SceneSpec
-from dynabrain.orchestrator.structure import build_structure
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.core import SceneSpec
+from dynabrain.orchestrator.kernel.structure import build_structure
+from dynabrain.orchestrator.kernel.world import World
 
 MODEL = Path(__file__).resolve().parent.parent / "scenarios" / "models" / "earthquake.xml"
 POSE = {"l_hip_pitch": -15, "r_hip_pitch": -15, "l_knee": 30, "r_knee": 30, "l_ankle_pitch": -15,

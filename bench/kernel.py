@@ -15,8 +15,8 @@ from __future__ import annotations
 from timing import best_of
 
 from dynabrain.modules.basic import Counter
-from dynabrain.orchestrator.core import COLORS, BodySpec, SceneSpec
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.core import COLORS, BodySpec, SceneSpec
+from dynabrain.orchestrator.kernel.world import World
 
 
 def kernel_overhead(ticks: int = 20000) -> None:
@@ -55,7 +55,7 @@ SELECTED = ["box_0_0", "box_5_5", "box_10_2", "box_15_7", "box_19_9"]
 
 
 def physics_world(scene: SceneSpec, select: list[str] | None = None) -> World:
-    from dynabrain.modules.mujoco_core import MujocoCore
+    from dynabrain.modules.mujoco.core import MujocoCore
 
     world = World("bench", step="2ms", history=200, core=MujocoCore("core", scene))
     if select is not None:

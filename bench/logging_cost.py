@@ -42,8 +42,8 @@ def timed_run(name: str, ticks: int, log: str | None, decimate: int = 1, writer:
               ) -> tuple[float, float, float, float]:
     """(wall s, stepping-thread CPU s, writer CPU s, close s) to tick ``ticks`` times and close the
     log, on a fresh world, with or without a logger (attaching it, which starts the writer, is not timed)."""
-    from dynabrain.orchestrator.mcap_logger import McapLogger
-    from dynabrain.orchestrator.scenario import load_scenario
+    from dynabrain.orchestrator.logs.logger import McapLogger
+    from dynabrain.orchestrator.scenario.model import load_scenario
 
     sc = load_scenario(SCENARIOS / f"{name}.yaml")
     world = sc.build()
@@ -86,9 +86,9 @@ def step_cost(name: str, ticks: int, folder: str) -> str:
 
 
 def read_speed(name: str, path: str, ticks: int) -> None:
-    from dynabrain.orchestrator.mcap_read import iter_bus, read_index
-    from dynabrain.orchestrator.mcap_verify import verify
-    from dynabrain.orchestrator.scenario import load_scenario
+    from dynabrain.orchestrator.logs.read import iter_bus, read_index
+    from dynabrain.orchestrator.logs.verify import verify
+    from dynabrain.orchestrator.scenario.model import load_scenario
 
     index = read_index(path)
     t0 = time.perf_counter()
@@ -111,8 +111,8 @@ def crash_loss(folder: str) -> None:
     import signal
     import subprocess
 
-    from dynabrain.orchestrator.mcap_read import read_index
-    from dynabrain.orchestrator.mcap_recover import recover
+    from dynabrain.orchestrator.logs.read import read_index
+    from dynabrain.orchestrator.logs.recover import recover
 
     for whole_group in (False, True):
         path = os.path.join(folder, f"killed{int(whole_group)}.mcap")
@@ -146,8 +146,8 @@ def writer_speed(path: str, folder: str) -> None:
     import numpy as np
     from mcap.writer import Writer
 
-    from dynabrain.orchestrator.mcap_scan import Channel, Message, scan
-    from dynabrain.orchestrator.mcap_write import McapWriter
+    from dynabrain.orchestrator.logs.scan import Channel, Message, scan
+    from dynabrain.orchestrator.logs.write import McapWriter
 
     by_channel: dict[int, list[Message]] = {}
     topics: dict[int, str] = {}

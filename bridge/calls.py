@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.history import WorldState
-from dynabrain.orchestrator.observers import WorldView
-from dynabrain.orchestrator.plugins import resolve_class
-from dynabrain.orchestrator.suggest import did_you_mean
-from dynabrain.orchestrator.units import parse_duration_ns
-from dynabrain.orchestrator.world import World, as_connection
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.history import WorldState
+from dynabrain.orchestrator.kernel.observers import WorldView
+from dynabrain.orchestrator.kernel.suggest import did_you_mean
+from dynabrain.orchestrator.kernel.units import parse_duration_ns
+from dynabrain.orchestrator.kernel.world import World, as_connection
+from dynabrain.orchestrator.scenario.make import ModuleNotAllowedError, make_module
 
 from . import frames
 from . import protocol as p
@@ -182,31 +182,18 @@ class WorldService:
         return {"module": spec.name, "order": self.world.schedule_order()}
 
     def make_module(self, spec: p.ModuleSpec) -> Any:
-        if (spec.python is None) == (spec.fmu is None):
-            raise DynabrainError(f"module {spec.name!r} needs exactly one of `python: package.module:Class` or `fmu:`")
+        """The module a client asks for: a ``python:`` class this server allows, or an FMU named
+        relative to the scenario's folder."""
         if spec.fmu is not None:
-            return self._make_fmu(spec)
-        if not any(fnmatch.fnmatchcase(spec.python, pat) for pat in self.allow_python):
-            raise DynabrainError(f"module class {spec.python!r} is not allowed on this server (allowed: "
-                                 f"{', '.join(self.allow_python) or 'none'}; see `dynabrain serve --allow-python`)")
-        cls = resolve_class(spec.python)
+            path = os.path.normpath(spec.fmu)
+            if os.path.isabs(path) or path.startswith(".."):
+                raise DynabrainError(f"module {spec.name!r}: an FMU is named relative to the scenario's folder, "
+                                     f"got {spec.fmu!r}")
         try:
-            return cls(spec.name, targets=spec.targets, **spec.params)
-        except DynabrainError:
-            raise
-        except Exception as exc:
-            raise DynabrainError(f"module {spec.name!r} ({spec.python}) failed to construct: "
-                                 f"{type(exc).__name__}: {exc}") from None
-
-    def _make_fmu(self, spec: p.ModuleSpec) -> Any:
-        from dynabrain.orchestrator.fmu import make_fmu_module
-
-        path = os.path.normpath(spec.fmu)
-        if os.path.isabs(path) or path.startswith(".."):
-            raise DynabrainError(f"module {spec.name!r}: an FMU is named relative to the scenario's folder, "
-                                 f"got {spec.fmu!r}")
-        return make_fmu_module(spec.name, path, base_dir=self.base_dir or ".", params=spec.params,
-                               targets=spec.targets)
+            return make_module(spec, base_dir=self.base_dir or ".", allow_python=self.allow_python)
+        except ModuleNotAllowedError as exc:
+            raise DynabrainError(f"module class {exc.python!r} is not allowed on this server (allowed: "
+                                 f"{', '.join(exc.allowed) or 'none'}; see `dynabrain serve --allow-python`)") from None
 
     def do_remove_module(self, a: p.NameArgs) -> list[str]:
         self.world.remove_module(a.name)

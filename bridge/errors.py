@@ -13,7 +13,7 @@ Three different situations, three different errors:
 
 from __future__ import annotations
 
-from dynabrain.orchestrator.errors import DynabrainError
+from dynabrain.orchestrator.kernel.errors import DynabrainError
 
 
 class BridgeError(DynabrainError):

@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from dynabrain.orchestrator.errors import DynabrainError
+from dynabrain.orchestrator.kernel.errors import DynabrainError
 
 from .protocol import READ_ONLY
 

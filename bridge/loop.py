@@ -11,8 +11,8 @@ import threading
 import time
 from collections.abc import Callable
 
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.units import NS_PER_S
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.units import NS_PER_S
 
 from .calls import WorldService
 

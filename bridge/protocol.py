@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
 
-from dynabrain.orchestrator.errors import DynabrainError
+from dynabrain.orchestrator.kernel.errors import DynabrainError
 
 VERSION = 1
 PREFIX = "dynabrain"
@@ -273,7 +273,7 @@ def decode_command(call: str, payload: bytes) -> tuple[Envelope, BaseModel]:
         return hit
     model = _COMMANDS.get(call)
     if model is None:
-        from dynabrain.orchestrator.suggest import did_you_mean
+        from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
         raise ProtocolError(f"unknown call {call!r}" + did_you_mean(call, CALLS), "unknown_call")
     env = _parse(model, payload, MAX_COMMAND_BYTES, call)

@@ -1,6 +1,6 @@
 """``dynabrain replay LOG --publish``: a recorded run played back over Zenoh, as its world served it.
 
-A recording (`dynabrain.orchestrator.mcap_logger`) is read with the project's own reader; the run (the
+A recording (`dynabrain.orchestrator.logs.logger`) is read with the project's own reader; the run (the
 ticks a rollback did not discard) is published under ``dynabrain/<world>/...`` with the frames a served
 world publishes (`PROTOCOL.md`, *Replaying a recording*):
 
@@ -39,9 +39,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.mcap_read import LogIndex, iter_bus, read_index
-from dynabrain.orchestrator.mcap_schema import TOPIC_BUS, BusCodec
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.logs.read import LogIndex, iter_bus, read_index
+from dynabrain.orchestrator.logs.schema import TOPIC_BUS, BusCodec
 
 from . import frames
 from . import protocol as p
@@ -138,7 +138,7 @@ def _stream_names(codec: BusCodec, signals: Sequence[str] | None, path: str) -> 
         matched = fnmatch.filter(slots, pattern) if any(c in pattern for c in "*?[") else (
             [pattern] if pattern in slots else [n for n in slots if n.split(".", 1)[1:] == [pattern]][:1])
         if not matched:
-            from dynabrain.orchestrator.suggest import did_you_mean
+            from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
             raise DynabrainError(f"{path}: no signal {pattern!r} in the recording" + did_you_mean(pattern, slots))
         names += [n for n in matched if n not in names]

@@ -8,8 +8,8 @@ measured joint state with noise and latency, and takes commands the way a robot 
 - it stops by itself (*safe stop*: hold where it stands) when no fresh move arrives within the deadline,
   when the world's liveliness token goes away, or on a stop command; an enable is needed to go on.
 
-``python -m dynabrain.bridge.robot_emulator bridge/arm.yaml --world arm --connect tcp/127.0.0.1:7447``
-(also ``dynabrain robot-emulator``). Noise comes from its own seeded generator.
+``dynabrain robot-emulator bridge/arm.yaml --world arm --connect tcp/127.0.0.1:7447``
+Noise comes from its own seeded generator.
 """
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.world import World
 
 from . import frames
 from . import protocol as p
@@ -252,17 +252,3 @@ def parse_set(items: list[str]) -> dict[str, Any]:
         except ValueError:
             out[name] = text
     return out
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``python -m dynabrain.bridge.robot_emulator ...``: the same as ``dynabrain robot-emulator ...``."""
-    import sys
-
-    from dynabrain.orchestrator.cli import main as cli_main
-
-    sys.argv = ["dynabrain", "robot-emulator", *(sys.argv[1:] if argv is None else argv)]
-    cli_main()
-
-
-if __name__ == "__main__":
-    main()

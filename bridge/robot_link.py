@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.observers import WorldView
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.observers import WorldView
 
 from . import frames
 from . import protocol as p

@@ -28,8 +28,8 @@ from typing import Any, ClassVar
 import numpy as np
 import zenoh
 
-from dynabrain.orchestrator.errors import DynabrainError, ModuleError, RollbackError, WorldClosedError
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.errors import DynabrainError, ModuleError, RollbackError, WorldClosedError
+from dynabrain.orchestrator.kernel.world import World
 
 from . import protocol as p
 from .calls import DEFAULT_ALLOW_PYTHON, WorldService

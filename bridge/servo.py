@@ -7,9 +7,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
-from dynabrain.orchestrator.suggest import did_you_mean
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
 
 class PDServo(Module):

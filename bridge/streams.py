@@ -14,7 +14,7 @@ from typing import Any
 
 import zenoh
 
-from dynabrain.orchestrator.observers import Observer, WorldEvent, WorldView
+from dynabrain.orchestrator.kernel.observers import Observer, WorldEvent, WorldView
 
 from . import protocol as p
 from .calls import STREAM_VIEW, WorldService

@@ -18,7 +18,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from dynabrain.orchestrator.errors import DynabrainError
+from dynabrain.orchestrator.kernel.errors import DynabrainError
 
 _ENDPOINT = re.compile(r" on ((?:tcp|tls|quic)/\S+)")
 

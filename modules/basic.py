@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from dynabrain.orchestrator.module import Capabilities, Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Capabilities, Module, Param, Port, SetupContext
 
 
 class Constant(Module):

@@ -23,9 +23,9 @@ import math
 
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
 
-from .mjaccess import MujocoLink, fail
+from .mujoco.access import MujocoLink, fail
 
 
 class BreakoutRules(Module):

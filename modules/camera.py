@@ -26,10 +26,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
 
-from .mjaccess import MujocoLink, fail
-from .offscreen import BACKENDS, RendererUnavailableError, open_gl
+from .mujoco.access import MujocoLink, fail
+from .mujoco.offscreen import BACKENDS, RendererUnavailableError, open_gl
 
 
 class Camera(Module):

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port
+from dynabrain.orchestrator.kernel.module import Module, Param, Port
 
 
 class CycleMeter(Module):

@@ -45,9 +45,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
 
-from .mjaccess import fail
+from .mujoco.access import fail
 
 TWO_PI = 2.0 * math.pi
 _AXES = (("amplitude", "frequency", "kp", "kd", "mass"),  # the parameters of each axis: slide, then tilt

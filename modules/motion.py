@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from dynabrain.orchestrator.errors import DynabrainError, UnitError
-from dynabrain.orchestrator.suggest import did_you_mean
-from dynabrain.orchestrator.units import parse_duration_ns, parse_quantity
+from dynabrain.orchestrator.kernel.errors import DynabrainError, UnitError
+from dynabrain.orchestrator.kernel.suggest import did_you_mean
+from dynabrain.orchestrator.kernel.units import parse_duration_ns, parse_quantity
 
 INTERPOLATIONS = ("minjerk", "linear")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port
+from dynabrain.orchestrator.kernel.module import Module, Param, Port
 
 
 class BounceMeter(Module):

@@ -43,9 +43,9 @@ from typing import Any, ClassVar
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
 
-from .mjaccess import MujocoLink, fail
+from .mujoco.access import MujocoLink, fail
 
 _SENS = mujoco.mjtSensor
 

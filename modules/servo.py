@@ -47,10 +47,10 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
 
-from .mjaccess import MujocoLink, fail
 from .motion import INTERPOLATIONS, Motion, MotionError, parse_motion, parse_pose
+from .mujoco.access import MujocoLink, fail
 
 _add, _subtract, _multiply, _minimum, _maximum = np.add, np.subtract, np.multiply, np.minimum, np.maximum
 

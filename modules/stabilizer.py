@@ -30,9 +30,9 @@ import math
 
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port
+from dynabrain.orchestrator.kernel.module import Module, Param, Port
 
-from .mjaccess import fail
+from .mujoco.access import fail
 
 
 class Stabilizer(Module):

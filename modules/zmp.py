@@ -14,7 +14,7 @@ carry a force. (MuJoCo's ``reduce="netforce"`` is refused: its point is the mean
 whole force, friction included, which is not the centre of pressure.)
 
 The sensor's values are those of the core's last step (an acceleration-stage sensor, see
-`modules.mjaccess`), and the core restores them on rollback. A foot with more contacts than its
+`modules.mujoco.access`), and the core restores them on rollback. A foot with more contacts than its
 sensor's ``num`` slots would give a wrong centre of pressure: the step then fails, naming the sensor.
 
 Targets: the feet (bodies). Outputs:
@@ -36,9 +36,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
 
-from .mjaccess import MujocoLink, fail
+from .mujoco.access import MujocoLink, fail
 from .support import ContactOverflowError, feet_support
 
 _CONTACT = int(mujoco.mjtSensor.mjSENS_CONTACT)

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dynabrain.orchestrator.core import BodySpec, JointSpec, PhysicsCore, SceneSpec
-from dynabrain.orchestrator.module import SetupContext
+from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec, PhysicsCore, SceneSpec
+from dynabrain.orchestrator.kernel.module import SetupContext
 
 DT = 2_000_000
 G = 9.81

@@ -16,9 +16,9 @@ from dynabrain.bridge import protocol as p
 from dynabrain.bridge.calls import WorldService
 from dynabrain.bridge.schema import DEFAULT_PATH, render
 from dynabrain.bridge.servo import PDServo
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.scenario import load_world
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = os.path.join(ROOT, "bridge", "arm.yaml")
@@ -163,7 +163,7 @@ def test_a_foreign_client_can_validate_with_the_schema_file():
 
 # -- world-side logic, on a real world -------------------------------------------------------------------------------
 def test_pd_servo_passes_check_module():
-    world = World.from_scenario(ARM)
+    world = load_world(ARM)
     try:
         check_module(PDServo("s2", targets=["yaw", "elbow"], kp=10.0), core=world.core).assert_ok()
     finally:
@@ -174,7 +174,7 @@ def test_pd_servo_passes_check_module():
 
 @pytest.fixture()
 def service():
-    world = World.from_scenario(ARM)
+    world = load_world(ARM)
     yield WorldService(world, instance=42, stream=["core.joint_q"])
     world.close()
 

@@ -18,11 +18,11 @@ from dynabrain.bridge import BrainClient, WorldRefusedError, publish_recording
 from dynabrain.bridge.replay import LISTEN_ENV, load_recording
 from dynabrain.bridge.testing import Process
 from dynabrain.bridge.zenoh_io import Settings, free_port
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.mcap_logger import McapLogger
-from dynabrain.orchestrator.mcap_read import iter_bus, read_index
-from dynabrain.orchestrator.mcap_schema import TOPIC_BUS
-from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.logs.logger import McapLogger
+from dynabrain.orchestrator.logs.read import iter_bus, read_index
+from dynabrain.orchestrator.logs.schema import TOPIC_BUS
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = os.path.join(ROOT, "bridge", "arm.yaml")

@@ -29,7 +29,8 @@ from dynabrain.bridge import (
 from dynabrain.bridge import protocol as p
 from dynabrain.bridge.testing import Process, ServerProcess
 from dynabrain.bridge.zenoh_io import Settings, open_session
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario import load_world
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = os.path.join(ROOT, "bridge", "arm.yaml")
@@ -97,7 +98,7 @@ def apply(target, op, arg) -> None:
 
 
 def test_brain_calls_give_the_same_states_as_in_process_calls(brain):
-    local = World.from_scenario(ARM)
+    local = load_world(ARM)
     try:
         view = brain.view(EVERYTHING)
         for op, *args in SCRIPT:

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from corekit import FLOOR, G, bind, box, make_core, run, scene_for_state, trajectory
 
-from dynabrain.modules.exudyn_core import ExudynCore
-from dynabrain.modules.mujoco_core import MujocoCore
-from dynabrain.orchestrator.core import JointSpec
-from dynabrain.orchestrator.errors import DynabrainError
+from dynabrain.modules.exudyn.core import ExudynCore
+from dynabrain.modules.mujoco.core import MujocoCore
+from dynabrain.orchestrator.kernel.core import JointSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError
 
 ENGINES = pytest.mark.parametrize("engine", [MujocoCore, ExudynCore], ids=["mujoco", "exudyn"])
 

@@ -4,7 +4,7 @@ that come from what each engine does differently (stated at each test).
 The main differences: MuJoCo integrates with a semi-implicit Euler step (first order: its position
 error grows as g h t / 2 in free fall) at the world's 2 ms, Exudyn with velocity Verlet (second order)
 at 0.5 ms; MuJoCo's contacts are soft constraints, Exudyn's penalty springs (mass-scaled, see
-`dynabrain.modules.exudyn_contact`).
+`dynabrain.modules.exudyn.contact`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dynabrain.modules.exudyn_core import ExudynCore
-from dynabrain.modules.mujoco_core import MujocoCore
-from dynabrain.orchestrator.core import BodySpec, JointSpec, SceneSpec
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.world import World
+from dynabrain.modules.exudyn.core import ExudynCore
+from dynabrain.modules.mujoco.core import MujocoCore
+from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec, SceneSpec
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 CORES = (MujocoCore, ExudynCore)

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from corekit import DT, FLOOR, G, box, run, scene_for_state, trajectory
 
-from dynabrain.modules import exudyn_geometry as geo
-from dynabrain.modules.exudyn_core import ExudynCore
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.core import BodySpec, CableSpec, JointSpec, SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.modules.exudyn import geometry as geo
+from dynabrain.modules.exudyn.core import ExudynCore
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.core import BodySpec, CableSpec, JointSpec, SceneSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
 
 
 def make_core(*bodies: BodySpec, **params):

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from dynabrain.orchestrator.errors import ScenarioError
-from dynabrain.orchestrator.runner import run_scenario
-from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.kernel.errors import ScenarioError
+from dynabrain.orchestrator.scenario.model import load_scenario
+from dynabrain.orchestrator.scenario.runner import run_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 BOTH = ["two_cubes_exudyn", "pendulum_chain", "robot_arm"]

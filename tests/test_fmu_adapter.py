@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dynabrain.orchestrator.errors import ForkError, RollbackError
 from dynabrain.orchestrator.fmu import make_fmu_module
 from dynabrain.orchestrator.fmu.check import check_fmu
 from dynabrain.orchestrator.fmu.module import FMUModule
 from dynabrain.orchestrator.fmu.states import FMUState, SerializedFMUState
-from dynabrain.orchestrator.module import SetupContext
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.errors import ForkError, RollbackError
+from dynabrain.orchestrator.kernel.module import SetupContext
+from dynabrain.orchestrator.kernel.world import World
 
 FMUS = Path(__file__).resolve().parents[1] / "fmus"
 VERSIONS = (2, 3)

@@ -11,13 +11,13 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from dynabrain.orchestrator.cli import app
+from dynabrain.orchestrator.cli.main import app
 from dynabrain.orchestrator.fmu import FMUBuildError, FMUError, make_fmu_module
 from dynabrain.orchestrator.fmu.build import build_fmu
 from dynabrain.orchestrator.fmu.check import check_fmu
 from dynabrain.orchestrator.fmu.scaffold import new_fmu
 from dynabrain.orchestrator.fmu.spec import load_spec
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.world import World
 
 FMUS = Path(__file__).resolve().parents[1] / "fmus"
 runner = CliRunner()

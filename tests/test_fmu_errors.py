@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dynabrain.orchestrator.errors import DynabrainError, ModuleError, ScenarioError
 from dynabrain.orchestrator.fmu import FMUCallError, FMUDiscardError, FMUError, make_fmu_module
 from dynabrain.orchestrator.fmu.build import build_fmu, compile_library, package_fmu
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.errors import DynabrainError, ModuleError, ScenarioError
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 FMUS = Path(__file__).resolve().parents[1] / "fmus"
 

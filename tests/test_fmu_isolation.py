@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.errors import ScenarioError
 from dynabrain.orchestrator.fmu import FMUCallError, FMUCrashError, FMUTimeoutError, make_fmu_module
-from dynabrain.orchestrator.mcap_logger import McapLogger
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.errors import ScenarioError
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.logs.logger import McapLogger
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 FMUS = Path(__file__).resolve().parents[1] / "fmus"
 

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from dynabrain.orchestrator.cli import app
-from dynabrain.orchestrator.runner import run_scenario
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.cli.main import app
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario import load_world
+from dynabrain.orchestrator.scenario.model import load_scenario
+from dynabrain.orchestrator.scenario.runner import run_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 
@@ -35,7 +36,7 @@ def states_bytes(world: World) -> bytes:
 
 
 def test_rollback_across_fmu_and_physics_is_bit_exact():
-    world = World.from_scenario(SCENARIOS / "fmu_moving_floor.yaml")
+    world = load_world(SCENARIOS / "fmu_moving_floor.yaml")
     try:
         world.tick(950)
         buses, states = [], []
@@ -55,7 +56,7 @@ def test_rollback_across_fmu_and_physics_is_bit_exact():
 
 
 def test_fork_predicts_the_world_with_fmus():
-    world = World.from_scenario(SCENARIOS / "fmu_servo.yaml")
+    world = load_world(SCENARIOS / "fmu_servo.yaml")
     try:
         world.tick(300)
         plan = world.fork()
@@ -76,8 +77,8 @@ def test_isolate_in_a_scenario_changes_no_bit(tmp_path):
     fmus = SCENARIOS.parent / "fmus"
     isolated.write_text(text.replace("fmu: fmus/servo,", f"fmu: {fmus}/servo, isolate: true,"))
     assert "isolate: true" in isolated.read_text()
-    plain = World.from_scenario(SCENARIOS / "fmu_servo.yaml")
-    other = World.from_scenario(isolated)
+    plain = load_world(SCENARIOS / "fmu_servo.yaml")
+    other = load_world(isolated)
     try:
         assert other.modules["servo"].pid is not None
         for world in (plain, other):

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from dynabrain.modules.basic import Constant, Counter, Gain, Integrator, Noise, Sine
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.errors import AlgebraicLoopError, ModuleError, RollbackError, WiringError
-from dynabrain.orchestrator.module import Capabilities, Module, Param, Port
-from dynabrain.orchestrator.observers import Observer
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.errors import AlgebraicLoopError, ModuleError, RollbackError, WiringError
+from dynabrain.orchestrator.kernel.module import Capabilities, Module, Param, Port
+from dynabrain.orchestrator.kernel.observers import Observer
+from dynabrain.orchestrator.kernel.world import World
 
 
 class Tracer(Module):

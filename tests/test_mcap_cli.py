@@ -16,9 +16,9 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 from typer.testing import CliRunner
 
-from dynabrain.orchestrator.cli import app
-from dynabrain.orchestrator.mcap_read import read_index
-from dynabrain.orchestrator.mcap_verify import verify
+from dynabrain.orchestrator.cli.main import app
+from dynabrain.orchestrator.logs.read import read_index
+from dynabrain.orchestrator.logs.verify import verify
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 runner = CliRunner()

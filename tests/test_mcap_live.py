@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.mcap_live import LiveView
-from dynabrain.orchestrator.mcap_schema import BusCodec, FieldNumbers
-from dynabrain.orchestrator.observers import WorldView
-from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.observers import WorldView
+from dynabrain.orchestrator.logs.live import LiveView
+from dynabrain.orchestrator.logs.schema import BusCodec, FieldNumbers
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 
@@ -125,7 +125,7 @@ def test_live_view_serves_loopback_only():
 def test_run_live_prints_where_it_serves(monkeypatch):
     from typer.testing import CliRunner
 
-    from dynabrain.orchestrator.cli import app
+    from dynabrain.orchestrator.cli.main import app
 
     monkeypatch.setenv("DYNABRAIN_LIVE_PORT", "0")
     result = CliRunner().invoke(app, ["run", str(SCENARIOS / "two_cubes.yaml"), "--live", "--duration", "5s", "-q"])

@@ -16,11 +16,12 @@ from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
 from dynabrain.modules.basic import Noise, Sine
-from dynabrain.orchestrator import mcap_logger, mcap_sink
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.mcap_logger import McapLogger
-from dynabrain.orchestrator.mcap_read import final_mask, iter_bus, read_index
-from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.logs import logger as mcap_logger
+from dynabrain.orchestrator.logs import sink as mcap_sink
+from dynabrain.orchestrator.logs.logger import McapLogger
+from dynabrain.orchestrator.logs.read import final_mask, iter_bus, read_index
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 

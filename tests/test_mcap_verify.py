@@ -11,15 +11,15 @@ import pytest
 from typer.testing import CliRunner
 
 from dynabrain.modules.basic import Gain, Noise, Sine
-from dynabrain.orchestrator.cli import app
-from dynabrain.orchestrator.mcap_logger import McapLogger
-from dynabrain.orchestrator.mcap_read import read_index
-from dynabrain.orchestrator.mcap_scan import Channel, Message, Metadata, Schema, scan
-from dynabrain.orchestrator.mcap_schema import BusCodec
-from dynabrain.orchestrator.mcap_verify import verify
-from dynabrain.orchestrator.mcap_write import McapWriter
-from dynabrain.orchestrator.module import Module, Param, Port
-from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.cli.main import app
+from dynabrain.orchestrator.kernel.module import Module, Param, Port
+from dynabrain.orchestrator.logs.logger import McapLogger
+from dynabrain.orchestrator.logs.read import read_index
+from dynabrain.orchestrator.logs.scan import Channel, Message, Metadata, Schema, scan
+from dynabrain.orchestrator.logs.schema import BusCodec
+from dynabrain.orchestrator.logs.verify import verify
+from dynabrain.orchestrator.logs.write import McapWriter
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from corekit import DT, FLOOR, G, box, run, scene_for_state, trajectory
 
-from dynabrain.modules.mujoco_core import MujocoCore
-from dynabrain.orchestrator.core import BodySpec, JointSpec
-from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.modules.mujoco.core import MujocoCore
+from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
 
 
 def make_core(*bodies: BodySpec, model: str | None = None, scenario_dir: str | None = None, **params):

@@ -12,13 +12,13 @@ import pytest
 
 from dynabrain.modules.floor import MovingFloor
 from dynabrain.modules.motion import MotionError, parse_motion, parse_pose
-from dynabrain.modules.mujoco_core import MujocoCore
+from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.modules.sensors import Encoders
 from dynabrain.modules.servo import Servo
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.core import SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.core import SceneSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.world import World
 
 MODELS = Path(__file__).resolve().parent.parent / "scenarios" / "models"
 ARM = """<mujoco>

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from dynabrain.modules.camera import Camera
-from dynabrain.modules.mujoco_core import MujocoCore
-from dynabrain.modules.offscreen import RendererUnavailableError, open_gl
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.core import SceneSpec
-from dynabrain.orchestrator.world import World
+from dynabrain.modules.mujoco.core import MujocoCore
+from dynabrain.modules.mujoco.offscreen import RendererUnavailableError, open_gl
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.core import SceneSpec
+from dynabrain.orchestrator.kernel.world import World
 
 MODELS = Path(__file__).resolve().parent.parent / "scenarios" / "models"
 ROOM = """<mujoco>

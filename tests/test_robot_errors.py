@@ -10,16 +10,16 @@ from pathlib import Path
 
 import pytest
 
-from dynabrain.modules.mjaccess import MujocoLink
-from dynabrain.modules.mujoco_core import MujocoCore
+from dynabrain.modules.mujoco.access import MujocoLink
+from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.modules.sensors import Encoders, Gyro
 from dynabrain.modules.servo import Servo
 from dynabrain.modules.stabilizer import Stabilizer
 from dynabrain.modules.zmp import ZmpSensor
-from dynabrain.orchestrator.core import SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError, ModuleError, ScenarioError
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.core import SceneSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError, ModuleError, ScenarioError
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 MODELS = Path(__file__).resolve().parent.parent / "scenarios" / "models"
 BAD = """name: bad

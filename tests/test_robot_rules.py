@@ -12,12 +12,12 @@ import pytest
 
 from dynabrain.modules.breakout import BreakoutRules, Paddle
 from dynabrain.modules.cycles import CycleMeter
-from dynabrain.modules.mujoco_core import MujocoCore
+from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.modules.reflexes import ContactKick, PhasePump
 from dynabrain.modules.stabilizer import Stabilizer
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.core import SceneSpec
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.core import SceneSpec
+from dynabrain.orchestrator.kernel.world import World
 
 MODELS = Path(__file__).resolve().parent.parent / "scenarios" / "models"
 

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dynabrain.orchestrator.runner import run_scenario
-from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.scenario.model import load_scenario
+from dynabrain.orchestrator.scenario.runner import run_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 ROBOT_SCENARIOS = ["humanoid_stand", "earthquake", "earthquake_fast", "seesaw", "swing", "breakout"]

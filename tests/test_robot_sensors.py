@@ -11,14 +11,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from dynabrain.modules.mujoco_core import STATE, MujocoCore
+from dynabrain.modules.mujoco.core import STATE, MujocoCore
 from dynabrain.modules.sensors import Accelerometer, Encoders, ForceSensor, Gyro
 from dynabrain.modules.servo import Servo
 from dynabrain.modules.support import convex_hull, feet_support, polygon_margin
 from dynabrain.modules.zmp import ZmpSensor
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.core import SceneSpec
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.core import SceneSpec
+from dynabrain.orchestrator.kernel.world import World
 
 MODELS = Path(__file__).resolve().parent.parent / "scenarios" / "models"
 STAND = {"l_hip_pitch": -15, "r_hip_pitch": -15, "l_knee": 30, "r_knee": 30, "l_ankle_pitch": -15,

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dynabrain.orchestrator.scenario import load_scenario
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 FMU_SERVO = "{name: servo, fmu: fmus/servo, params: {kp: 20, kd: 1, tau_max: 5, lag: 10ms}}"

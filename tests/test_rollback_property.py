@@ -1,7 +1,7 @@
 """Property tests of rollback with each real physics core (MuJoCo and Exudyn): random sequences of
 tick, backtick, set, add, remove, make, make_joint and no_collision. Replaying from a rollback is
 bit-identical, and so is a fresh world running the same sequence (Exudyn: velocity Verlet with one
-thread; see `dynabrain.modules.exudyn_system`)."""
+thread; see `dynabrain.modules.exudyn.system`)."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dynabrain.modules.basic import Counter, Gain, Noise, Sine
-from dynabrain.modules.exudyn_core import ExudynCore
-from dynabrain.modules.mujoco_core import MujocoCore
-from dynabrain.orchestrator.core import COLORS, BodySpec, JointSpec, SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError
-from dynabrain.orchestrator.world import World
+from dynabrain.modules.exudyn.core import ExudynCore
+from dynabrain.modules.mujoco.core import MujocoCore
+from dynabrain.orchestrator.kernel.core import COLORS, BodySpec, JointSpec, SceneSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.world import World
 
 OBJECTS = ["a", "b", "c", "arm"]
 CORES = {"mujoco": MujocoCore, "exudyn": ExudynCore}

@@ -6,10 +6,10 @@ import textwrap
 
 import pytest
 
-from dynabrain.orchestrator.errors import ScenarioError
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.units import parse_duration_ns
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.errors import ScenarioError
+from dynabrain.orchestrator.kernel.units import parse_duration_ns
+from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario.model import load_scenario
 
 
 def problems_of(tmp_path, text: str) -> list[str]:
@@ -117,7 +117,7 @@ connect:
 
 
 def test_a_valid_signal_scenario_runs(tmp_path):
-    from dynabrain.orchestrator.runner import run_scenario
+    from dynabrain.orchestrator.scenario.runner import run_scenario
 
     path = tmp_path / "ok.yaml"
     path.write_text(SIGNALS.replace("10ms", "300ms") + """
@@ -140,7 +140,7 @@ def test_durations_are_exact_integers():
 
 
 def test_expectations_may_name_modules_events_add_and_dotted_ports(tmp_path):
-    from dynabrain.orchestrator.runner import run_scenario
+    from dynabrain.orchestrator.scenario.runner import run_scenario
 
     path = tmp_path / "late.yaml"
     path.write_text("""

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from dynabrain.orchestrator.runner import run_scenario
-from dynabrain.orchestrator.scenario import load_scenario
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.scenario import load_world
+from dynabrain.orchestrator.scenario.model import load_scenario
+from dynabrain.orchestrator.scenario.runner import run_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 
@@ -37,7 +37,7 @@ def test_bounce_ratios_follow_restitution_squared():
 
 
 def test_selection_freezes_the_unselected_exactly():
-    world = World.from_scenario(SCENARIOS / "selection.yaml")
+    world = load_world(SCENARIOS / "selection.yaml")
     frozen = world.get("box_3_3.pos")
     world.tick(400)
     assert world.core.selection == ("box_0_0", "box_5_5", "box_10_2", "box_15_7", "box_19_9")

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dynabrain.modules.mujoco_core import MujocoCore
+from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.modules.probes import BounceMeter
-from dynabrain.orchestrator.checks import check_module
-from dynabrain.orchestrator.core import COLORS, BodySpec, JointSpec, SceneSpec
-from dynabrain.orchestrator.errors import DynabrainError, PhysicsDivergedError
-from dynabrain.orchestrator.world import World
+from dynabrain.orchestrator.kernel.checks import check_module
+from dynabrain.orchestrator.kernel.core import COLORS, BodySpec, JointSpec, SceneSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.orchestrator.kernel.world import World
 
 
 def scene() -> SceneSpec:
@@ -105,7 +105,7 @@ def test_check_module_on_the_core_and_the_bounce_meter():
 
 @pytest.mark.parametrize("engine", ["mujoco", "exudyn"])
 def test_out_of_range_parameters_are_refused_and_change_nothing(engine):
-    from dynabrain.orchestrator.plugins import resolve_core
+    from dynabrain.orchestrator.kernel.plugins import resolve_core
 
     w = World("w", step="2ms", core=resolve_core(engine)("core", scene()))
     w.tick(5)

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..errors import DynabrainError
-from ..module import Module
+from ..kernel.errors import DynabrainError
+from ..kernel.module import Module
 from .errors import FMUBuildError, FMUCallError, FMUCrashError, FMUDiscardError, FMUError, FMUTimeoutError
 
 __all__ = ["FMUBuildError", "FMUCallError", "FMUCrashError", "FMUDiscardError", "FMUError", "FMUTimeoutError",

@@ -16,9 +16,9 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..checks import CheckReport, check_module
-from ..errors import DynabrainError
-from ..world import World
+from ..kernel.checks import CheckReport, check_module
+from ..kernel.errors import DynabrainError
+from ..kernel.world import World
 from . import load_fmu_info
 from .info import FmuInfo
 from .module import FMUModule

@@ -7,7 +7,7 @@ back to the last good tick and re-raises them with the module's name and the tic
 
 from __future__ import annotations
 
-from ..errors import DynabrainError, ModuleError
+from ..kernel.errors import DynabrainError, ModuleError
 
 STATUS_NAMES = ("OK", "Warning", "Discard", "Error", "Fatal", "Pending")
 

@@ -26,9 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DynabrainError
-from ..module import Capabilities, SetupContext
-from ..workers import spawn_worker
+from ..kernel.errors import DynabrainError
+from ..kernel.module import Capabilities, SetupContext
+from ..kernel.workers import spawn_worker
 from . import errors as fmu_errors
 from .errors import FMUCrashError, FMUError, FMUTimeoutError
 from .info import FmuInfo

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ..module import Capabilities, Module, Param, Port, SetupContext
+from ..kernel.module import Capabilities, Module, Param, Port, SetupContext
 from .info import DIMENSIONS, FmuInfo, Signal
 from .session import Session
 from .states import FMUState, SerializedFMUState

@@ -27,8 +27,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from ..errors import Problem
-from ..yamlsrc import YamlSource
+from ..kernel.errors import Problem
+from ..kernel.yamlsrc import YamlSource
 from .errors import FMUBuildError
 
 IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import DynabrainError, ModuleError
+from ..kernel.errors import DynabrainError, ModuleError
 from .info import FmuInfo
 from .session import Session
 from .states import FMUState, SerializedFMUState

@@ -1,0 +1,123 @@
+"""A structure of the Exudyn core, planned: which carrier every body rides on once the edits
+(frozen objects, welds) are applied. See `exudyn.topology` for what a carrier is.
+
+Edits are plain tuples, so they compare, hash and pickle (they are part of the core's state):
+``(frozen, welds, groups)`` with
+
+- ``frozen``: one ``(object, ((body, world pose 7), ...), ((joint, q), ...), ((cable, node coords), ...))``
+  per frozen object: where everything stood when it froze;
+- ``welds``: ``(name, a, b, pose of b in a's frame 7)`` per `make_joint`;
+- ``groups``: sorted tuples of bodies that do not collide with one another (`no_collision`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import geometry as geo
+from .topology import Topology, fail
+
+NO_EDITS: tuple = ((), (), ())
+
+
+@dataclass
+class Carrier:
+    owner: str
+    kind: str
+    """world, free, link, cable or frozen_cable."""
+    members: dict[str, geo.Pose] = field(default_factory=dict)
+    """Body -> its pose in the owner's frame (the world frame for the world)."""
+
+
+@dataclass
+class Plan:
+    carriers: dict[str, Carrier]
+    carrier_of: dict[str, str]
+    trees: dict[str, list[str]]
+    """Root link -> the links of an active kinematic tree, parents first."""
+    frozen_joints: dict[str, float]
+    frozen_cables: dict[str, np.ndarray]
+    groups: tuple[tuple[str, ...], ...]
+
+    @property
+    def world(self) -> Carrier:
+        return self.carriers[""]
+
+
+def to7(p: geo.Pose) -> tuple[float, ...]:
+    return (*map(float, p[0]), *map(float, p[1]))
+
+
+def from7(v) -> geo.Pose:
+    return geo.pose(v[:3], v[3:])
+
+
+def make_plan(top: Topology, edits: tuple) -> Plan:
+    """The carriers of the structure ``edits``; refuses welds the core cannot make."""
+    frozen, welds, groups = edits
+    carriers: dict[str, Carrier] = {"": Carrier("", "world")}
+    carrier_of: dict[str, str] = {}
+    for n in top.bodies:
+        own = top.owner[n]
+        if own not in carriers:
+            carriers[own] = Carrier(own, top.role[own])
+        carriers[own].members[n] = top.rel[n]
+        carrier_of[n] = own
+    frozen_joints: dict[str, float] = {}
+    frozen_cables: dict[str, np.ndarray] = {}
+    for _obj, bodies, joints, cables in frozen:
+        for body, world in bodies:
+            if top.role[body] != "cable":
+                _move(carriers, carrier_of, body, "", from7(world))
+        frozen_joints.update(joints)
+        for cable, coords in cables:
+            carriers[cable].kind = "frozen_cable"
+            frozen_cables[cable] = np.asarray(coords, dtype=float)
+    for weld in welds:
+        _weld(top, carriers, carrier_of, *weld)
+    carriers = {k: c for k, c in carriers.items() if c.members or k == ""}
+    trees: dict[str, list[str]] = {}
+    for n in top.bodies:
+        if carriers.get(n) is not None and carriers[n].kind == "link":
+            trees.setdefault(top.tree_of[n], []).append(n)
+    return Plan(carriers, carrier_of, trees, frozen_joints, frozen_cables, tuple(groups))
+
+
+def _move(carriers: dict[str, Carrier], carrier_of: dict[str, str], body: str, dest: str, rel: geo.Pose) -> None:
+    del carriers[carrier_of[body]].members[body]
+    carriers[dest].members[body] = rel
+    carrier_of[body] = dest
+
+
+def _weld(top: Topology, carriers: dict[str, Carrier], carrier_of: dict[str, str], name: str, a: str, b: str,
+          rel7) -> None:
+    ca, cb = carriers[carrier_of[a]], carriers[carrier_of[b]]
+    if ca is cb or (ca.kind == "world" and cb.kind == "world"):
+        return
+    for c, body in ((ca, a), (cb, b)):
+        if c.kind in ("cable", "frozen_cable"):
+            raise fail(top.core, f"make_joint({a!r}, {b!r}): {body!r} is a cable; the exudyn core pins cables "
+                       "with attach, it does not weld them")
+    x_ab = from7(rel7)
+    if cb.kind == "free":
+        _merge(carriers, carrier_of, into=ca, via=a, other=cb, other_body=b, x_via_other=x_ab)
+    elif ca.kind == "free":
+        _merge(carriers, carrier_of, into=cb, via=b, other=ca, other_body=a, x_via_other=geo.inverse(x_ab))
+    else:
+        what = "to the world" if "world" in (ca.kind, cb.kind) else "to another jointed body"
+        raise fail(top.core, f"make_joint({a!r}, {b!r}) ({name}): welding a body on a hinge or slide joint {what} "
+                   "would close a kinematic loop, which the exudyn core does not simulate")
+
+
+def _merge(carriers: dict[str, Carrier], carrier_of: dict[str, str], *, into: Carrier, via: str, other: Carrier,
+           other_body: str, x_via_other: geo.Pose) -> None:
+    """Move every member of ``other`` onto ``into``, keeping ``other_body`` at ``x_via_other`` in ``via``."""
+    x_into_via = into.members[via]
+    x_other_inv = geo.inverse(other.members[other_body])
+    base = geo.compose(geo.compose(x_into_via, x_via_other), x_other_inv)
+    for m, x in list(other.members.items()):
+        into.members[m] = geo.compose(base, x)
+        carrier_of[m] = into.owner
+    other.members.clear()

@@ -1,0 +1,522 @@
+"""The MuJoCo physics core: a SceneSpec (or an MJCF file) simulated by MuJoCo as a dynabrain module.
+
+Choices (see also `mujoco.scene`):
+
+- integrator ``implicitfast``: joint damping and velocity-dependent actuator forces are integrated
+  implicitly, so damped joints and stiff drives stay stable at the world's step, at the cost of an
+  explicit step (no Coriolis derivatives); elliptic friction cones with the Newton solver (MuJoCo's
+  most accurate friction model); automatic reset on bad numbers is off, so a divergence stays visible
+  and `step` raises `PhysicsDivergedError` instead of silently restarting the model;
+- the data is kept "after `mj_step1`": a step is `mj_step2` (inputs already in place), more full steps
+  for the substeps, then `mj_step1`, so positions, velocities and sensors of the new state are current
+  for the outputs at no extra cost;
+- ports are block ports (``body_pos`` ...) written with one array operation each; every named object
+  has its own port as a view into a block (a joint's ``q``, ``qd``, ``force`` and an actuator's ``ctrl``
+  have shape (1,), like the other modules' one-value signals). Body velocities come from MuJoCo frame-velocity sensors
+  the core adds for moving bodies (computed in C). ``sensordata`` holds all the model's sensor values
+  in MuJoCo's order, and each sensor's port (``sensor.<name>``) is a view into it. The outputs are
+  declared in the order of the MuJoCo arrays they come from, so a step writes them all with five
+  memory copies (poses, joints, and one run of sensordata for the sensors and the velocities);
+- structural edits (`make`, `make_joint`, `no_collision`) recompile the model (`mujoco.scene`);
+  each compiled structure is cached by its edits, so a rollback across an edit costs a dictionary
+  look-up. The state is ``(edits, integration state array, sensor values)`` (see `STATE`).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from collections import OrderedDict
+from collections.abc import Sequence
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from dynabrain.orchestrator.kernel.core import BodyInfo, EditedCore, SceneSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.orchestrator.kernel.module import Param, Port, SetupContext
+
+from . import scene as ms
+
+_log = logging.getLogger("dynabrain.mujoco")
+
+
+def _warning_to_log(message: str) -> None:
+    _log.warning("MuJoCo: %s", message.strip())
+
+
+if mujoco.get_mju_user_warning() is None:
+    # MuJoCo's default appends warnings to MUJOCO_LOG.TXT in the working folder; the core writes no
+    # files, and divergence is detected from the data's warning counters, which this keeps intact.
+    mujoco.set_mju_user_warning(_warning_to_log)
+
+_S = mujoco.mjtState
+STATE = int(_S.mjSTATE_INTEGRATION) & ~int(_S.mjSTATE_QFRC_APPLIED) & ~int(_S.mjSTATE_XFRC_APPLIED)
+"""MuJoCo's integration state without the applied forces: the core rewrites ``qfrc_applied`` from its
+inputs before every step and never uses ``xfrc_applied``, so they carry no state (and for free bodies
+they were 40 % of it)."""
+NO_EDITS: tuple = ((), (), ())
+CACHE_SIZE = 16
+DEFAULT_PERIOD_S = 0.002
+
+
+def _plain(array: np.ndarray) -> bool:
+    """A 1-D, contiguous float64 array (one a memoryview copies with memcpy)."""
+    return array.ndim == 1 and array.dtype == np.float64 and array.flags.c_contiguous
+
+
+def _empty(index: slice | np.ndarray) -> bool:
+    return index.stop <= index.start if isinstance(index, slice) else not len(index)
+
+
+def _move(dst: np.ndarray, di, src: np.ndarray, si) -> tuple:
+    if isinstance(di, slice) and isinstance(si, slice) and _plain(dst) and _plain(src):
+        return (memoryview(dst), di, memoryview(src), si)
+    return (dst, di, src, si)
+
+
+class _Structure:
+    """One compiled structure: model, data, and its maps onto the core's fixed port layout. Maps are
+    flat indices into C-ordered blocks: a slice where the rows are contiguous, else an index array."""
+
+    def __init__(self, layout: ms.Layout, edits: tuple, model: mujoco.MjModel, movers: tuple,
+                 friction: dict, data: mujoco.MjData | None = None):
+        self.edits, self.model, self.movers, self.friction = edits, model, movers, friction
+        self.data = d = data if data is not None else mujoco.MjData(model)
+        self.xpos, self.xquat = d.xpos.reshape(-1), d.xquat.reshape(-1)
+        self.qpos, self.qvel, self.sensordata = d.qpos, d.qvel, d.sensordata
+        self.ctrl, self.qfrc = d.ctrl, d.qfrc_applied
+        self.nstate = mujoco.mj_stateSize(model, STATE)
+        w = mujoco.mjtWarning
+        self.warns = tuple((what, d.warning[int(k)]) for what, k in (
+            ("acceleration", w.mjWARN_BADQACC), ("velocity", w.mjWARN_BADQVEL), ("position", w.mjWARN_BADQPOS)))
+        self.warn_acc, self.warn_vel, self.warn_pos = (x[1] for x in self.warns)
+        self.warn_counts = [x[1].number for x in self.warns]
+        self.warn_seen = sum(self.warn_counts)
+        self.body_id = {model.body(i).name: i for i in range(1, model.nbody)}
+        self.joint_slices = {model.joint(j).name: ms.joint_slice(model, j) for j in range(model.njnt)}
+        self.welds = np.array([model.equality(e[0]).id for e in edits[1]], dtype=int)
+        self.geom_friction = np.array([friction.get(model.geom(g).name, np.nan) for g in range(model.ngeom)])
+        self._map_bodies(layout, edits)
+        self._map_joints(layout, edits)
+        self._map_actuators_sensors(layout)
+
+    def clone(self, layout: ms.Layout) -> _Structure:
+        return _Structure(layout, self.edits, copy.deepcopy(self.model), self.movers, self.friction,
+                          copy.deepcopy(self.data))
+
+    def _map_bodies(self, layout: ms.Layout, edits: tuple) -> None:
+        row = {b: r for r, b in enumerate(layout.bodies)}
+        present = [b for b in layout.bodies if b in self.body_id]
+        pairs = [(row[b], self.body_id[b]) for b in present]
+        self.all3, self.all_id3, self.all4, self.all_id4 = ms.pose_index(pairs)
+        self.mv3, self.mv_id3, self.mv4, self.mv_id4 = ms.pose_index([(row[b], self.body_id[b]) for b in self.movers])
+        moving = set(self.movers)
+        self.still3 = ms.flat_index([r for r, b in enumerate(layout.bodies) if b not in moving], 3)
+        world = {b: w for entry in edits[0] for b, _rel, w in entry[1]}
+        fused = [b for b in layout.bodies if b not in self.body_id]
+        self.fused3, self.fused4 = (ms.flat_index([row[b] for b in fused], k) for k in (3, 4))
+        self.fused_pose = {b: world[b] for b in fused}
+        self.fused_pos = np.array([world[b][:3] for b in fused]).reshape(-1)
+        self.fused_quat = np.array([world[b][3:] for b in fused]).reshape(-1)
+        n = len(self.movers)
+        start = int(self.model.sensor_adr[self.model.sensor(f"{ms.VEL_PREFIX}lin_{self.movers[0]}").id]) if n else 0
+        self.lin, self.ang = slice(start, start + 3 * n), slice(start + 3 * n, start + 6 * n)
+
+    def _map_joints(self, layout: ms.Layout, edits: tuple) -> None:
+        frozen = {j: v for entry in edits[0] for j, v in entry[2]}
+        kept = [(r, self.joint_slices[j]) for r, j in enumerate(layout.qjoints) if j in self.joint_slices]
+        self.njoint = len(kept)
+        self.jrows = ms.flat_index([r for r, _ in kept], 1)
+        self.qadr, self.dadr = (ms.flat_index([js[k] for _, js in kept], 1) for k in (0, 2))
+        gone = [r for r, j in enumerate(layout.qjoints) if j not in self.joint_slices]
+        self.frozen_jrows = ms.flat_index(gone, 1)
+        self.frozen_q = np.array([frozen[layout.qjoints[r]][0] for r in gone])
+
+    def _map_actuators_sensors(self, layout: ms.Layout) -> None:
+        m = self.model
+        index = {a: i for i, a in enumerate(layout.actuators)}
+        self.act_src = ms.flat_index([index[m.actuator(a).name] for a in range(m.nu)], 1)
+        sensors = {m.sensor(s).name: s for s in range(m.nsensor)}
+        rows, src = [], []
+        for name, dim, adr in layout.sensors:
+            if name in sensors:
+                rows.extend(range(adr, adr + dim))
+                src.extend(range(int(m.sensor_adr[sensors[name]]), int(m.sensor_adr[sensors[name]]) + dim))
+        self.nsens, self.sens_rows, self.sens_src = len(rows), ms.flat_index(rows, 1), ms.flat_index(src, 1)
+        ours = ms.VEL_PREFIX
+        self.user_sd = sum(int(m.sensor_dim[s]) for n, s in sensors.items() if not n.startswith(ours))
+
+
+class MujocoCore(EditedCore):
+    """A physics core on MuJoCo. ``scene`` is primitives or an MJCF file (``scene.model``)."""
+
+    ENGINE = "mujoco"
+    PARAMS = (
+        Param("friction", 1.0, runtime=True, doc="sliding friction coefficient of every geom"),
+        Param("restitution", 0.0, runtime=True, doc="coefficient of restitution of contacts, 0..1"),
+        Param("gravity", (0.0, 0.0, -9.81), unit="m/s^2", runtime=True, dimension="acceleration",
+              doc="gravity vector"),
+        Param("substeps", 1, runtime=True, doc="MuJoCo steps per module step (timestep = period/substeps)"),
+    )
+
+    def __init__(self, name: str, scene: SceneSpec, *, scenario_dir: str | None = None, **params: Any):
+        super().__init__(name, scene, **params)
+        for key, value in self._param_values.items():
+            self._check_param(key, value)
+        self._period = DEFAULT_PERIOD_S
+        self._source = ms.SpecSource(name, scene, scenario_dir)
+        self._friction = self._source.friction
+        model, movers = ms.build_structure(name, self._source, NO_EDITS)
+        self._layout = ms.make_layout(model)
+        self._rows = {b: i for i, b in enumerate(self._layout.bodies)}
+        self._cache: OrderedDict[tuple, _Structure] = OrderedDict()
+        self._s = self._remember(_Structure(self._layout, NO_EDITS, model, movers, self._friction))
+        self._edits = NO_EDITS
+        self._apply_params(self._s)
+        mujoco.mj_forward(model, self._s.data)
+        self._ports_in, self._ports_out = self._make_ports()
+        self._unbind()
+
+    # -- ports --------------------------------------------------------------------------------------------
+    def _make_ports(self) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
+        """Block ports, each object's port a view into one. The outputs come in the order of the
+        arrays they are copied from, so that a step fills them with few copies: poses (xpos, xquat),
+        joints (qpos, qvel), then the model's sensors and the body velocities (one run of sensordata)."""
+        lay, outs, ins, views = self._layout, [], [], []
+        body_blocks = (("body_pos", "pos", 3, "m"), ("body_quat", "quat", 4, "1"),
+                       ("body_linvel", "linvel", 3, "m/s"), ("body_angvel", "angvel", 3, "rad/s"))
+
+        def bodies(blocks: tuple) -> None:
+            for block, q, n, unit in blocks:
+                outs.append(Port(block, (len(lay.bodies), n), unit, doc=f"{q} of every body"))
+                views.extend(Port(f"{b}.{q}", (n,), unit, view_of=(block, i)) for i, b in enumerate(lay.bodies))
+
+        if lay.bodies:
+            bodies(body_blocks[:2])
+        if lay.qjoints:
+            units = list(zip(*lay.qunits, strict=True))
+            uq, uf = (u[0] if len(set(u)) == 1 else "1" for u in units)
+            uqd = f"{uq}/s" if uq != "1" else "1"
+            outs += [Port("joint_q", (len(lay.qjoints),), uq), Port("joint_qd", (len(lay.qjoints),), uqd)]
+            ins.append(Port("joint_force", (len(lay.qjoints),), uf))
+            for i, (j, (q, f)) in enumerate(zip(lay.qjoints, lay.qunits, strict=True)):
+                views += [Port(f"{j}.q", (), q, view_of=("joint_q", i)),
+                          Port(f"{j}.qd", (), f"{q}/s", view_of=("joint_qd", i))]
+                ins.append(Port(f"{j}.force", (), f, view_of=("joint_force", i)))
+        if lay.actuators:
+            ins.append(Port("ctrl", (len(lay.actuators),), "1"))
+            ins += [Port(f"{a}.ctrl", (), "1", view_of=("ctrl", i)) for i, a in enumerate(lay.actuators)]
+        if lay.sensors:
+            outs.append(Port("sensordata", (lay.nsensordata,), "1", doc="all sensor values, MuJoCo order"))
+            views += [Port(f"sensor.{n}", (dim,), "1", view_of=("sensordata", adr)) for n, dim, adr in lay.sensors]
+        if lay.bodies:
+            bodies(body_blocks[2:])
+        return tuple(ins), tuple(outs + views)
+
+    def inputs(self) -> Sequence[Port]:
+        return self._ports_in
+
+    def outputs(self) -> Sequence[Port]:
+        return self._ports_out
+
+    def _unbind(self) -> None:
+        """A private buffer in place of the bus (laid out as the bus lays out the outputs): the step
+        code never tests for missing ports."""
+        self._own_out = np.zeros(sum(p.size for p in self._ports_out if p.view_of is None))
+        self._out_views(self._own_out)
+        lay = self._layout
+        self._force, self._ctrl = np.zeros(len(lay.qjoints)), np.zeros(len(lay.actuators))
+        self._moves: tuple | None = None  # (structure, copies) of `step`, made on first use
+
+    def _out_views(self, flat: np.ndarray) -> None:
+        """``self._out`` (every output, flat, in declaration order), the offset of each block in it,
+        and a flat view of each block."""
+        self._out, self._offset, at, blocks = flat, {}, 0, {}
+        for port in self._ports_out:
+            if port.view_of is None:
+                self._offset[port.name], blocks[port.name] = at, flat[at:at + port.size]
+                at += port.size
+        empty = np.zeros(0)
+        self._pos, self._quat, self._lin, self._ang = (blocks.get(f"body_{q}", empty)
+                                                       for q in ("pos", "quat", "linvel", "angvel"))
+        self._q, self._qd, self._sd = (blocks.get(k, empty) for k in ("joint_q", "joint_qd", "sensordata"))
+
+    def bind(self) -> None:
+        self._unbind()
+        if self.out_flat.size == self._own_out.size:  # bound to the bus: write there
+            self._out_views(self.out_flat)
+        elif self.out:
+            raise DynabrainError(f"core {self.name!r}: its outputs are bound without `out_flat`; the core writes "
+                                 "them through it (bind as the World does)")
+        for attr, key in (("_force", "joint_force"), ("_ctrl", "ctrl")):
+            if self.inp.get(key) is not None:
+                setattr(self, attr, np.asarray(self.inp[key]).reshape(-1))
+
+    # -- lifecycle --------------------------------------------------------------------------------------------
+    def setup(self, ctx: SetupContext) -> None:
+        self._period = ctx.period_ns * 1e-9
+        self._apply_params(self._s)
+        mujoco.mj_forward(self._s.model, self._s.data)
+
+    def start(self, t_ns: int) -> None:
+        self._write_all()
+
+    def step(self, t_ns: int, dt_ns: int) -> None:
+        s = self._s
+        moves = self._moves
+        if moves is None or moves[0] is not s:
+            moves = self._moves = (s, *self._plan_moves(s))
+        for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls
+            dst[di] = src[si]
+        mujoco.mj_step2(s.model, s.data)
+        if self._nsub > 1:
+            mujoco.mj_step(s.model, s.data, self._nsub - 1)
+        mujoco.mj_step1(s.model, s.data)
+        bad = s.warn_pos.number + s.warn_vel.number + s.warn_acc.number
+        if bad != s.warn_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
+            raise PhysicsDivergedError(self.name, "step", None, self._divergence(s, bad))
+        for dst, di, src, si in moves[2]:  # the outputs that can change in a step (`_write_outputs`)
+            dst[di] = src[si]
+
+    def get_state(self) -> tuple:
+        s = self._s
+        arr = np.empty(s.nstate)
+        mujoco.mj_getState(s.model, s.data, arr, STATE)
+        sensors = s.sensordata[:s.user_sd].copy() if s.user_sd else None
+        return (self._edits, arr, sensors)
+
+    def set_state(self, state: tuple) -> None:
+        edits, arr, sensors = state
+        if edits is not self._edits and edits != self._edits:
+            self._activate(edits, carry=False)
+        s = self._s
+        mujoco.mj_setState(s.model, s.data, np.asarray(arr, dtype=np.float64), STATE)
+        mujoco.mj_step1(s.model, s.data)
+        if sensors is not None:
+            s.sensordata[:len(sensors)] = sensors  # acceleration-stage sensors of the last step
+        self._write_all()
+
+    def on_param(self, name: str, value: Any) -> None:
+        self._check_param(name, value)
+        s = self._s
+        self._apply_params(s)
+        # the data is kept after mj_step1, computed with the old values (gravity's bias forces, the
+        # contacts' friction and stiffness): compute it again, as restoring this state would
+        mujoco.mj_step1(s.model, s.data)
+
+    def close(self) -> None:
+        self._cache.clear()
+
+    def __deepcopy__(self, memo: dict) -> MujocoCore:
+        """An independent copy (`fork`, `World.fork`): model and data copied, unbound; the cache of
+        other structures starts empty (they are recompiled, identically, when needed)."""
+        twin = copy.copy(self)
+        memo[id(self)] = twin
+        twin._drop_ports()
+        twin._unbind()
+        twin._param_values = dict(self._param_values)
+        twin._source = self._source.copy()
+        twin._cache = OrderedDict()
+        twin._s = twin._remember(self._s.clone(self._layout))
+        return twin
+
+    def refresh_outputs(self) -> None:
+        """Rewrite every output from the current state (the world calls this after `place`)."""
+        self._write_all()
+
+    # -- parameters -----------------------------------------------------------------------------------------
+    def _check_param(self, name: str, value: Any) -> None:
+        bad = {"friction": lambda v: v < 0, "restitution": lambda v: not 0 <= v <= 1,
+               "substeps": lambda v: v < 1, "gravity": lambda v: not np.all(np.isfinite(v))}
+        if name in bad and bad[name](value):
+            raise ms.fail(self.name, f"parameter {name} = {value!r} is out of range")
+
+    def _apply_params(self, s: _Structure) -> None:
+        """Apply every run-time parameter to a structure's model (idempotent)."""
+        m, p = s.model, self._param_values
+        self._nsub = int(p["substeps"])
+        dt = self._period / self._nsub
+        m.opt.timestep = dt
+        m.opt.gravity[:] = p["gravity"]
+        fr = float(p["friction"])
+        m.geom_friction[:, 0] = np.where(np.isnan(s.geom_friction), fr, s.geom_friction)
+        solref, solimp = ms.contact_params(float(p["restitution"]), dt, float(np.linalg.norm(p["gravity"])))
+        m.geom_solref[:] = solref
+        m.geom_solimp[:] = solimp
+        if m.npair:
+            m.pair_solref[:], m.pair_solimp[:], m.pair_friction[:, :2] = solref, solimp, fr
+        if len(s.welds):
+            m.eq_solref[s.welds] = (2.0 * dt, 1.0)
+            m.eq_solimp[s.welds] = (0.99, 0.99, 0.001, 0.5, 2.0)
+
+    # -- outputs ------------------------------------------------------------------------------------------------
+    def _write_outputs(self, s: _Structure) -> None:
+        """Outputs that can change in a step: moving bodies, joints, sensors."""
+        moves = self._moves
+        if moves is None or moves[0] is not s:
+            moves = self._moves = (s, *self._plan_moves(s))
+        for dst, di, src, si in moves[2]:
+            dst[di] = src[si]
+
+    def _plan_moves(self, s: _Structure) -> tuple[list[tuple], list[tuple]]:
+        """The copies `step` makes from the inputs and `_write_outputs` into the outputs, as
+        (dst, index, src, index). Copies of neighbouring runs of one array into neighbouring outputs
+        are merged, and where both indexes are slices the copy goes through memoryviews (a memcpy,
+        ~4x cheaper than a numpy slice copy)."""
+        ins = []
+        if s.njoint:
+            ins.append((s.qfrc, s.dadr, self._force, s.jrows))
+        if len(s.ctrl):
+            ins.append((s.ctrl, slice(None), self._ctrl, s.act_src))
+        outs: list[list] = []  # [dst index in self._out, src array, src index], in output order
+        for block, rows, src, index in (("body_pos", s.mv3, s.xpos, s.mv_id3), ("body_quat", s.mv4, s.xquat, s.mv_id4),
+                                        ("joint_q", s.jrows, s.qpos, s.qadr), ("joint_qd", s.jrows, s.qvel, s.dadr),
+                                        ("sensordata", s.sens_rows, s.sensordata, s.sens_src),
+                                        ("body_linvel", s.mv3, s.sensordata, s.lin),
+                                        ("body_angvel", s.mv3, s.sensordata, s.ang)):
+            at = self._offset.get(block)
+            if at is None or _empty(rows):
+                continue
+            dst = slice(at + rows.start, at + rows.stop) if isinstance(rows, slice) else rows + at
+            last = outs[-1] if outs else None
+            runs = last is not None and all(isinstance(x, slice) for x in (last[0], last[2], dst, index))
+            if runs and last[1] is src and last[0].stop == dst.start and last[2].stop == index.start:
+                last[0], last[2] = slice(last[0].start, dst.stop), slice(last[2].start, index.stop)
+            else:
+                outs.append([dst, src, index])
+        return [_move(*p) for p in ins], [_move(self._out, dst, src, index) for dst, src, index in outs]
+
+    def _write_all(self) -> None:
+        """Every output, with the constant ones of static and frozen bodies and joints."""
+        s = self._s
+        self._pos[s.all3] = s.xpos[s.all_id3]
+        self._quat[s.all4] = s.xquat[s.all_id4]
+        self._pos[s.fused3] = s.fused_pos
+        self._quat[s.fused4] = s.fused_quat
+        self._lin[s.still3] = 0.0
+        self._ang[s.still3] = 0.0
+        self._q[s.frozen_jrows] = s.frozen_q
+        self._qd[s.frozen_jrows] = 0.0
+        self._write_outputs(s)
+
+    def _divergence(self, s: _Structure, bad: int) -> str:
+        """Which joint diverged first (acceleration before velocity before position)."""
+        now = [w.number for _what, w in s.warns]
+        what, index = next(((what, int(w.lastinfo)) for (what, w), n0, n in zip(s.warns, s.warn_counts, now,
+                                                                                strict=True) if n > n0))
+        s.warn_counts, s.warn_seen = now, bad
+        m = s.model
+        if what == "position":
+            j = int(np.searchsorted(m.jnt_qposadr, index, side="right")) - 1
+        else:
+            j = int(m.dof_jntid[index]) if m.nv else -1
+        if j < 0:
+            return f"{what}s became NaN, infinite or larger than 1e10"
+        body = m.body(int(m.jnt_bodyid[j])).name
+        return (f"the {what} of joint {m.joint(j).name!r} (body {body!r}) became NaN, infinite or "
+                f"larger than 1e10; check the inputs, or reduce forces or the timestep (substeps)")
+
+    # -- scene queries --------------------------------------------------------------------------------------
+    def objects(self) -> list[str]:
+        return list(self._layout.objects)
+
+    def bodies(self) -> list[str]:
+        return list(self._layout.bodies)
+
+    def joints(self) -> list[str]:
+        return list(self._layout.joints)
+
+    def body_info(self, name: str) -> BodyInfo:
+        row, lay = self._row(name), self._layout
+        return BodyInfo(name=name, free=name in lay.free, parent=lay.parents[row], geoms=lay.geoms[name])
+
+    def body_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        self._row(name)
+        s = self._s
+        bid = s.body_id.get(name)
+        if bid is None:
+            pose = s.fused_pose[name]
+            return np.array(pose[:3]), np.array(pose[3:])
+        d = s.data
+        return d.xpos[bid].copy(), d.xquat[bid].copy()
+
+    def body_velocity(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        self._row(name)
+        s = self._s
+        bid = s.body_id.get(name)
+        res = np.zeros(6)
+        if bid is not None:
+            mujoco.mj_objectVelocity(s.model, s.data, mujoco.mjtObj.mjOBJ_XBODY, bid, res, 0)
+        return res[3:].copy(), res[:3].copy()
+
+    # -- structural edits -----------------------------------------------------------------------------------
+    def _freeze_entry(self, obj: str) -> tuple:
+        """(object, ((body, pose in parent or None, world pose), ...), ((joint, qpos), ...)), now."""
+        s, lay = self._s, self._layout
+        bodies, joints = [], []
+        for b in lay.subtree[obj]:
+            bid = s.body_id[b]
+            rel = ms.relative_pose(s.model, s.data, bid) if lay.body_joints[b] else None
+            bodies.append((b, rel, (*map(float, s.data.xpos[bid]), *map(float, s.data.xquat[bid]))))
+            for j in lay.body_joints[b]:
+                qa, nq, _da, _nv = s.joint_slices[j]
+                joints.append((j, tuple(map(float, s.qpos[qa:qa + nq]))))
+        return (obj, tuple(bodies), tuple(joints))
+
+    def _weld_data(self, a: str, b: str) -> tuple:
+        return ms.weld_data(*self.body_pose(a), *self.body_pose(b))
+
+    def _parent(self, body: str) -> str | None:
+        return self._layout.parents[self._rows[body]]
+
+    def _reserved_joint_names(self) -> set[str]:
+        model = self._s.model
+        return set(self._layout.joints) | {model.equality(e).name for e in range(model.neq)}
+
+    def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
+        self._row(body)
+        s, lay = self._s, self._layout
+        if body not in lay.free:
+            raise ms.fail(self.name, f"body {body!r} has no free joint; place moves free bodies")
+        joint = next((j for j in lay.body_joints[body] if s.joint_slices.get(j, (0, 0))[1] == 7), None)
+        if joint is None:
+            raise ms.fail(self.name, f"body {body!r} is frozen; select its object with make() first")
+        p = np.asarray(pos, dtype=np.float64)
+        q = np.asarray(s.qpos[s.joint_slices[joint][0] + 3:][:4] if quat is None else quat, dtype=np.float64)
+        if p.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(p)) and np.linalg.norm(q) > 0):
+            raise ms.fail(self.name, f"place({body!r}): pos must be 3 numbers and quat 4 (w, x, y, z), not 0")
+        qa, _nq, da, _nv = s.joint_slices[joint]
+        s.qpos[qa:qa + 3], s.qpos[qa + 3:qa + 7] = p, q / np.linalg.norm(q)
+        s.qvel[da:da + 6] = 0.0
+        mujoco.mj_forward(s.model, s.data)
+        self._write_all()
+
+    # -- structures -----------------------------------------------------------------------------------------
+    def _remember(self, s: _Structure) -> _Structure:
+        self._cache[s.edits] = s
+        self._cache.move_to_end(s.edits)
+        while len(self._cache) > CACHE_SIZE:
+            self._cache.popitem(last=False)
+        return s
+
+    def _structure(self, edits: tuple) -> _Structure:
+        s = self._cache.get(edits)
+        if s is None:
+            model, movers = ms.build_structure(self.name, self._source, edits)
+            s = _Structure(self._layout, edits, model, movers, self._friction)
+        return self._remember(s)
+
+    def _activate(self, edits: tuple, *, carry: bool) -> None:
+        old, new = self._s, self._structure(edits)
+        self._apply_params(new)
+        if carry:
+            ms.carry_over(old, new)
+            mujoco.mj_forward(new.model, new.data)
+        self._s, self._edits = new, edits
+
+    def _edit(self, edits: tuple) -> None:
+        if edits != self._edits:
+            self._activate(edits, carry=True)
+            self._write_all()

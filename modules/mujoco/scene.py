@@ -1,0 +1,558 @@
+"""Model building for the MuJoCo core: a SceneSpec or an MJCF file becomes an `mujoco.MjSpec`, a
+structure (frozen objects, welds, collision exclusions) becomes a compiled `mujoco.MjModel`, and a
+coefficient of restitution becomes contact parameters.
+
+Structures. Every structure is compiled from a fresh spec (`SpecSource`). A frozen object loses its
+joints, gets the pose it had when it was frozen baked into its bodies, and is fused into the world
+(`mjs_fuseStatic`), so it costs no kinematics, no broad-phase box and no degrees of freedom; only its
+geoms stay, as static world geoms that moving bodies still collide with. Bodies that something refers to
+(a weld, an exclusion, a sensor) are not fused and stay as static bodies. The core maps every
+compiled model back onto one fixed layout (the unedited model's bodies, joints, actuators and sensors),
+by name, so that its block ports keep their shapes across structures.
+
+Contacts. All contacts use a soft contact of constant impedance ``IMPEDANCE`` whose stiffness and
+damping are given directly (MuJoCo's negative ``solref``): natural frequency ``wn`` (see
+`contact_frequency`) and damping ``2 zeta wn``. The damping ratio ``zeta`` of a restitution ``e``
+is calibrated once per (timestep, wn, gravity) by bouncing a one-dof sphere in MuJoCo itself for a
+grid of damping ratios and inverting that curve (`damping_ratio`).
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from dynabrain.orchestrator.kernel.core import FLEX_SHAPES, SHAPES, BodySpec, SceneSpec
+from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.suggest import did_you_mean
+
+ENGINE = "mujoco"
+IMPEDANCE = 0.99
+"""Constant constraint impedance of contacts (solimp d0 = dwidth): contacts follow their reference
+acceleration to 99 %, which keeps the effective stiffness and damping those of the solref."""
+FREQ_PER_STEP = 0.1
+"""Contact natural frequency times timestep: ~60 steps per contact oscillation."""
+FREQ_MAX = 800.0
+"""Upper bound of the contact natural frequency (rad/s) reached with small timesteps."""
+CALIBRATION_SPEED = 1.5
+"""Impact speed (m/s) at which the restitution is calibrated (a drop of about 11 cm)."""
+_ZETAS = np.array([0.0, 0.02, 0.05, 0.08, 0.12, 0.17, 0.23, 0.3, 0.4, 0.5, 0.62, 0.75, 0.9, 1.0,
+                   1.25, 1.5, 2.0, 3.0, 4.0])
+_GEOMS = {"plane": mujoco.mjtGeom.mjGEOM_PLANE, "box": mujoco.mjtGeom.mjGEOM_BOX,
+          "sphere": mujoco.mjtGeom.mjGEOM_SPHERE, "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE,
+          "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER}
+_GEOM_NAMES = {int(v): k for k, v in _GEOMS.items()} | {
+    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid", int(mujoco.mjtGeom.mjGEOM_MESH): "mesh",
+    int(mujoco.mjtGeom.mjGEOM_HFIELD): "hfield", int(mujoco.mjtGeom.mjGEOM_SDF): "sdf"}
+_JOINTS = {"hinge": mujoco.mjtJoint.mjJNT_HINGE, "slide": mujoco.mjtJoint.mjJNT_SLIDE}
+_OPTIONS = {
+    "integrator": ("integrator", mujoco.mjtIntegrator, "mjINT_"),
+    "cone": ("cone", mujoco.mjtCone, "mjCONE_"),
+    "solver": ("solver", mujoco.mjtSolver, "mjSOL_"),
+}
+_NUMERIC_OPTIONS = {"iterations": int, "tolerance": float, "impratio": float, "noslip_iterations": int}
+VEL_PREFIX = "__dynabrain_vel_"
+"""Name prefix of the velocity sensors the core adds to read body velocities in one step."""
+
+
+def fail(core: str, message: str) -> DynabrainError:
+    return DynabrainError(f"{ENGINE} core {core!r}: {message}")
+
+
+# -- specs ----------------------------------------------------------------------------------------------
+class SpecSource:
+    """Makes the spec of a structure. A primitive scene is rebuilt from its bodies, frozen bodies
+    without their joints (fast); an MJCF model is copied and the frozen joints are deleted (deleting
+    is slow in MuJoCo, about 0.4 ms a joint, so only done for model files)."""
+
+    def __init__(self, core: str, scene: SceneSpec, scenario_dir: str | None):
+        if scene.model and scene.bodies:
+            raise fail(core, "a scene has either a model file or bodies, not both")
+        self.core, self.scene = core, scene
+        self.base = _finish(core, _spec_from_file(core, scene.model, scenario_dir), scene) if scene.model else None
+        self.friction = {b.name: float(b.friction) for b in scene.bodies if b.friction is not None}
+        if self.base is None:
+            self.spec({})  # check the scene now: errors belong to construction
+
+    def spec(self, bake: dict[str, tuple | None]) -> tuple[mujoco.MjSpec, set[str]]:
+        """A fresh spec with the bodies of ``bake`` frozen (pose in parent, or None: keep), and the
+        names of the joints that froze."""
+        if self.base is None:
+            spec = _finish(self.core, _spec_from_bodies(self.core, self.scene.bodies, bake), self.scene)
+            removed: set[str] = set()  # frozen bodies were built without joints
+        else:
+            spec, removed = self.base.copy(), set()
+            for name, rel in bake.items():
+                removed |= _bake(spec.body(name), rel, spec)
+        for name in bake:
+            spec.body(name).fuse = 1
+        return spec, removed
+
+    def copy(self) -> SpecSource:
+        twin = copy.copy(self)
+        twin.base = self.base.copy() if self.base is not None else None
+        return twin
+
+
+def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec) -> mujoco.MjSpec:
+    _apply_options(core, spec, scene.options or {})
+    _name_everything(spec)
+    for body in spec.bodies:
+        body.fuse = 0  # only frozen bodies are fused (see build_structure)
+    spec.compiler.fusestatic = False
+    return spec
+
+
+def _spec_from_file(core: str, path: str, scenario_dir: str | None) -> mujoco.MjSpec:
+    full = path if os.path.isabs(path) or scenario_dir is None else os.path.join(scenario_dir, path)
+    if not os.path.isfile(full):
+        raise fail(core, f"model file {full!r} not found")
+    try:
+        return mujoco.MjSpec.from_file(full)
+    except Exception as exc:  # mujoco raises ValueError with the parser's message
+        raise fail(core, f"cannot read model file {full!r}: {exc}") from None
+
+
+def _spec_from_bodies(core: str, bodies: Sequence[BodySpec], bake: dict) -> mujoco.MjSpec:
+    spec = mujoco.MjSpec()
+    spec.compiler.degree = False  # a SceneSpec is in radians (MjSpec, like MJCF, defaults to degrees)
+    names = [b.name for b in bodies]
+    by_name = {b.name: b for b in bodies}
+    if len(by_name) != len(bodies):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise fail(core, f"body names must be unique; repeated: {', '.join(dup)}")
+    made: dict[str, mujoco.MjsBody] = {}
+
+    def make(b: BodySpec, chain: tuple[str, ...]) -> mujoco.MjsBody:
+        if b.name in made:
+            return made[b.name]
+        if b.parent is not None and b.parent not in by_name:
+            raise fail(core, f"{_where(b)}parent {b.parent!r} is not a body" + did_you_mean(b.parent, by_name))
+        if b.parent in chain:
+            raise fail(core, f"{_where(b)}parent cycle: {' -> '.join((*chain, b.name))}")
+        parent = spec.worldbody if b.parent is None else make(by_name[b.parent], (*chain, b.name))
+        made[b.name] = _add_body(core, parent, b, b.name in bake, bake.get(b.name))
+        return made[b.name]
+
+    for b in bodies:
+        make(b, ())
+    return spec
+
+
+def _where(b: BodySpec) -> str:
+    return f"body {b.name!r}" + (f" (line {b.line})" if b.line else "") + ": "
+
+
+def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel: tuple | None) -> mujoco.MjsBody:
+    if b.shape in FLEX_SHAPES:
+        raise fail(core, f"{_where(b)}a flexible body (shape {b.shape!r}) is not supported by the mujoco core; "
+                   "flexible bodies need core: exudyn")
+    if b.shape not in _GEOMS:
+        raise fail(core, f"{_where(b)}shape {b.shape!r} is not supported by the mujoco core "
+                   f"(supported: {', '.join(SHAPES)})" + did_you_mean(b.shape, _GEOMS))
+    pos, quat = (rel[:3], rel[3:]) if rel is not None else (b.pos, b.quat)
+    body = parent.add_body(name=b.name, pos=list(pos), quat=list(quat))
+    geom = body.add_geom(name=b.name, type=_GEOMS[b.shape], size=_geom_size(core, b),
+                         rgba=list(b.color))
+    if b.mass is not None:
+        if b.mass <= 0:
+            raise fail(core, f"{_where(b)}mass must be positive, got {b.mass}")
+        geom.mass = float(b.mass)
+    _add_joint(core, body, b, frozen)
+    return body
+
+
+def _geom_size(core: str, b: BodySpec) -> list[float]:
+    s = [float(x) for x in b.size]
+    need = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,)}[b.shape]
+    if len(s) not in need or any(x < 0 for x in s) or (b.shape != "plane" and not all(s)):
+        raise fail(core, f"{_where(b)}a {b.shape} needs {' or '.join(map(str, need))} positive sizes, "
+                   f"got {tuple(b.size)}")
+    if b.shape == "plane":
+        return [*(s or [0.0, 0.0]), 1.0]
+    if b.shape == "box":
+        return [x / 2 for x in s]
+    if b.shape == "sphere":
+        return [s[0], 0.0, 0.0]
+    return [s[0], s[1] / 2, 0.0]
+
+
+def _add_joint(core: str, body: mujoco.MjsBody, b: BodySpec, frozen: bool) -> None:
+    kind = b.joint.kind if b.joint is not None else ("free" if b.parent is None else "fixed")
+    if b.shape == "plane" and ((b.joint is not None and kind != "fixed") or b.parent is not None):
+        raise fail(core, f"{_where(b)}a plane is static: it takes no joint and no parent")
+    if b.shape == "plane" or kind == "fixed" or frozen:
+        return
+    name = (b.joint.name if b.joint is not None else None) or b.name
+    if kind == "free":
+        if b.parent is not None:
+            raise fail(core, f"{_where(b)}a free joint needs a top-level body (mujoco)")
+        body.add_freejoint(name=name)
+        return
+    if kind not in _JOINTS:
+        raise fail(core, f"{_where(b)}joint kind {kind!r} is not supported by the mujoco core "
+                   f"(supported: free, hinge, slide, fixed)" + did_you_mean(kind, _JOINTS))
+    j = b.joint
+    joint = body.add_joint(name=name, type=_JOINTS[kind], axis=list(j.axis), pos=list(j.anchor),
+                           damping=float(j.damping))
+    if j.range is not None:
+        joint.limited = mujoco.mjtLimited.mjLIMITED_TRUE
+        joint.range = [float(j.range[0]), float(j.range[1])]
+
+
+def _apply_options(core: str, spec: mujoco.MjSpec, options: dict) -> None:
+    """Defaults: implicitfast integrator, elliptic cones, Newton solver, no automatic reset."""
+    opt = spec.option
+    opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
+    opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_SLEEP)  # sleep state is not in mjSTATE_INTEGRATION
+    for key, value in options.items():
+        if key in _OPTIONS:
+            attr, enum, prefix = _OPTIONS[key]
+            members = {n[len(prefix):].lower(): v for n, v in enum.__members__.items()}
+            if str(value).lower() not in members:
+                raise fail(core, f"option {key}: unknown value {value!r} (one of {', '.join(members)})")
+            setattr(opt, attr, members[str(value).lower()])
+        elif key in _NUMERIC_OPTIONS:
+            setattr(opt, key, _NUMERIC_OPTIONS[key](value))
+
+
+def _name_everything(spec: mujoco.MjSpec) -> None:
+    """Give unnamed bodies, joints, actuators and sensors a name (structures map them by name)."""
+    groups = (("body", spec.bodies[1:]), ("joint", spec.joints), ("actuator", spec.actuators),
+              ("sensor", spec.sensors))
+    for kind, items in groups:
+        taken = {x.name for x in items}
+        for i, item in enumerate(items):
+            if not item.name:
+                name = f"_{kind}{i}"
+                while name in taken:
+                    name += "_"
+                item.name = name
+                taken.add(name)
+
+
+# -- layout --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Layout:
+    """The fixed layout of a core's ports, from the base model (row i of a body block is body i+1)."""
+
+    bodies: tuple[str, ...]
+    parents: tuple[str | None, ...]
+    objects: tuple[str, ...]
+    subtree: dict[str, tuple[str, ...]]
+    body_joints: dict[str, tuple[str, ...]]
+    free: frozenset[str]
+    joints: tuple[str, ...]
+    qjoints: tuple[str, ...]
+    qunits: tuple[tuple[str, str], ...]
+    actuators: tuple[str, ...]
+    sensors: tuple[tuple[str, int, int], ...]
+    nsensordata: int
+    geoms: dict[str, tuple[dict, ...]] = field(repr=False)
+
+
+def make_layout(model: mujoco.MjModel) -> Layout:
+    names = tuple(model.body(i).name for i in range(1, model.nbody))
+    parents = tuple(None if model.body_parentid[i] == 0 else model.body(int(model.body_parentid[i])).name
+                    for i in range(1, model.nbody))
+    subtree: dict[str, list[str]] = {n: [n] for n in names}
+    for i in range(model.nbody - 1, 1, -1):  # children come after parents
+        p = int(model.body_parentid[i])
+        if p:
+            subtree[names[p - 1]].extend(subtree[names[i - 1]])
+    joints = tuple(model.joint(j).name for j in range(model.njnt))
+    body_joints = {n: tuple(joints[j] for j in range(model.njnt) if model.jnt_bodyid[j] == i + 1)
+                   for i, n in enumerate(names)}
+    free = frozenset(names[model.jnt_bodyid[j] - 1] for j in range(model.njnt)
+                     if model.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_FREE))
+    hinge, slide = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
+    qj = [j for j in range(model.njnt) if model.jnt_type[j] in (hinge, slide)]
+    qunits = tuple(("rad", "N*m") if model.jnt_type[j] == hinge else ("m", "N") for j in qj)
+    sensors = tuple((model.sensor(s).name, int(model.sensor_dim[s]), int(model.sensor_adr[s]))
+                    for s in range(model.nsensor) if not model.sensor(s).name.startswith(VEL_PREFIX))
+    return Layout(bodies=names, parents=parents,
+                  objects=tuple(n for n, p in zip(names, parents, strict=True) if p is None),
+                  subtree={k: tuple(v) for k, v in subtree.items()}, body_joints=body_joints, free=free,
+                  joints=joints, qjoints=tuple(joints[j] for j in qj), qunits=qunits,
+                  actuators=tuple(model.actuator(a).name for a in range(model.nu)), sensors=sensors,
+                  nsensordata=sum(s[1] for s in sensors), geoms=_geom_info(model, names))
+
+
+def _geom_info(model: mujoco.MjModel, names: tuple[str, ...]) -> dict[str, tuple[dict, ...]]:
+    out: dict[str, list[dict]] = {n: [] for n in names}
+    for g in range(model.ngeom):
+        b = int(model.geom_bodyid[g])
+        if b == 0:
+            continue
+        kind = _GEOM_NAMES.get(int(model.geom_type[g]), "unknown")
+        size = model.geom_size[g]
+        scene_size = {"box": tuple(2 * size), "sphere": (size[0],), "capsule": (size[0], 2 * size[1]),
+                      "cylinder": (size[0], 2 * size[1]),
+                      "plane": tuple(size[:2]) if size[0] > 0 else ()}.get(kind, tuple(size))
+        info = {"name": model.geom(g).name, "type": kind, "size": tuple(float(x) for x in scene_size),
+                "rgba": tuple(float(x) for x in model.geom_rgba[g]),
+                "pos": tuple(float(x) for x in model.geom_pos[g]),
+                "quat": tuple(float(x) for x in model.geom_quat[g])}
+        if kind == "mesh":
+            info["mesh"] = model.mesh(int(model.geom_dataid[g])).name
+        out[names[b - 1]].append(info)
+    return {k: tuple(v) for k, v in out.items()}
+
+
+# -- structures ------------------------------------------------------------------------------------------
+def build_structure(core: str, source: SpecSource, edits: tuple) -> tuple[mujoco.MjModel, tuple[str, ...]]:
+    """Compile the structure ``edits`` = (frozen, welds, groups); return it and its moving bodies."""
+    frozen, welds, groups = edits
+    spec, removed = source.spec({b: rel for entry in frozen for b, rel, _world in entry[1]})
+    if removed:
+        _prune(spec, removed)
+    for name, a, b, data in welds:
+        spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY, name=name,
+                          name1=a, name2=b, data=np.asarray(data, dtype=np.float64))
+    for pair in _exclusions(spec, groups):
+        spec.add_exclude(bodyname1=pair[0], bodyname2=pair[1])
+    movers = _moving_bodies(spec)
+    for kind, tag in ((mujoco.mjtSensor.mjSENS_FRAMELINVEL, "lin"),
+                      (mujoco.mjtSensor.mjSENS_FRAMEANGVEL, "ang")):
+        for b in movers:  # all linear velocities first, then all angular ones: two (n, 3) blocks
+            spec.add_sensor(name=f"{VEL_PREFIX}{tag}_{b}", type=kind, objtype=mujoco.mjtObj.mjOBJ_XBODY,
+                            objname=b)
+    try:
+        if frozen:
+            spec.fuse_static()
+        return spec.compile(), movers
+    except Exception as exc:
+        what = ", ".join(e[0] for e in frozen)
+        raise fail(core, f"cannot build the structure (frozen: {what or 'none'}): {exc}") from None
+
+
+def _bake(body: mujoco.MjsBody, rel: tuple | None, spec: mujoco.MjSpec) -> set[str]:
+    """Give a body of an MJCF spec its frozen pose in its parent and remove its joints."""
+    if rel is None:
+        return set()
+    if body.frame is not None:  # the baked pose is in the parent's frame: move the body to an identity frame
+        body.set_frame(body.parent.add_frame())
+    body.alt.type = mujoco.mjtOrientation.mjORIENTATION_QUAT
+    body.pos, body.quat = list(rel[:3]), list(rel[3:])
+    removed = set()
+    for joint in list(body.joints):
+        removed.add(joint.name)
+        spec.delete(joint)
+    return removed
+
+
+def _prune(spec: mujoco.MjSpec, joints: set[str]) -> None:
+    """Remove what refers to removed joints: actuators, sensors, joint equalities, keyframes."""
+    trn_joint = (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT)
+    gone = set(joints)
+    for act in list(spec.actuators):
+        if act.trntype in trn_joint and act.target in joints:
+            gone.add(act.name)
+            spec.delete(act)
+    refers = (mujoco.mjtObj.mjOBJ_JOINT, mujoco.mjtObj.mjOBJ_ACTUATOR)
+    for sensor in list(spec.sensors):
+        if sensor.objtype in refers and sensor.objname in gone:
+            spec.delete(sensor)
+    for eq in list(spec.equalities):
+        if eq.type == mujoco.mjtEq.mjEQ_JOINT and (eq.name1 in joints or eq.name2 in joints):
+            spec.delete(eq)
+    for key in list(spec.keys):
+        spec.delete(key)
+
+
+def _exclusions(spec: mujoco.MjSpec, groups: tuple) -> list[tuple[str, str]]:
+    def subtree(name: str) -> list[str]:
+        out, stack = [], [spec.body(name)]
+        while stack:
+            b = stack.pop()
+            out.append(b.name)
+            stack.extend(b.bodies)
+        return out
+
+    pairs: dict[tuple[str, str], None] = {}
+    for group in groups:
+        trees = [subtree(n) for n in group]
+        for i, ta in enumerate(trees):
+            for tb in trees[i + 1:]:
+                for a in ta:
+                    for b in tb:
+                        if a != b:
+                            pairs[(a, b) if a < b else (b, a)] = None
+    return list(pairs)
+
+
+def _moving_bodies(spec: mujoco.MjSpec) -> tuple[str, ...]:
+    out: list[str] = []
+    stack = [(b, False) for b in reversed(spec.worldbody.bodies)]
+    while stack:
+        body, moving = stack.pop()
+        moving = moving or bool(body.joints) or bool(body.mocap)
+        if moving:
+            out.append(body.name)
+        stack.extend((c, moving) for c in reversed(body.bodies))
+    return tuple(out)
+
+
+def relative_pose(model: mujoco.MjModel, data: mujoco.MjData, body: int) -> tuple[float, ...]:
+    """Pose (pos, quat) of ``body`` in its parent's frame, now."""
+    parent = int(model.body_parentid[body])
+    neg, quat, pos = np.empty(4), np.empty(4), np.empty(3)
+    mujoco.mju_negQuat(neg, data.xquat[parent])
+    mujoco.mju_mulQuat(quat, neg, data.xquat[body])
+    mujoco.mju_rotVecQuat(pos, data.xpos[body] - data.xpos[parent], neg)
+    return (*map(float, pos), *map(float, quat))
+
+
+def weld_data(pos_a, quat_a, pos_b, quat_b) -> tuple[float, ...]:
+    """Equality data welding body b to body a at their current relative pose."""
+    neg, quat, pos = np.empty(4), np.empty(4), np.empty(3)
+    mujoco.mju_negQuat(neg, quat_a)
+    mujoco.mju_mulQuat(quat, neg, quat_b)
+    mujoco.mju_rotVecQuat(pos, np.asarray(pos_b) - pos_a, neg)
+    return (0.0, 0.0, 0.0, *map(float, pos), *map(float, quat), 1.0, 0.0)
+
+
+# -- contact parameters from restitution ------------------------------------------------------------------
+_CALIBRATION: dict[tuple[float, float, float], np.ndarray] = {}
+_TINY: list[tuple[mujoco.MjModel, mujoco.MjData]] = []
+_LOCK = threading.Lock()  # forks may step in threads; the calibration model is shared
+
+
+def contact_frequency(dt: float) -> float:
+    """Natural frequency (rad/s) of contacts at engine timestep ``dt``."""
+    return min(FREQ_PER_STEP / dt, FREQ_MAX)
+
+
+def contact_params(restitution: float, dt: float, gravity: float) -> tuple[np.ndarray, np.ndarray]:
+    """(solref, solimp) of every contact for a coefficient of restitution."""
+    wn = contact_frequency(dt)
+    zeta = damping_ratio(restitution, dt, wn, gravity)
+    solref = np.array([-wn * wn, -2.0 * zeta * wn])
+    solimp = np.array([IMPEDANCE, IMPEDANCE, 0.001, 0.5, 2.0])
+    return solref, solimp
+
+
+def damping_ratio(e: float, dt: float, wn: float, gravity: float) -> float:
+    """The damping ratio whose measured restitution is ``e`` (calibrated, cached)."""
+    key = (float(dt), float(wn), round(float(gravity), 9))
+    with _LOCK:
+        if key not in _CALIBRATION:
+            _CALIBRATION[key] = np.minimum.accumulate(_calibrate(*key))
+        measured = _CALIBRATION[key]
+    if e <= 0.0:  # no bounce: 1.5 times the least damping that stops the calibration bounce
+        stuck = np.flatnonzero(measured <= 0.0)
+        return float(min(max(1.0, 1.5 * _ZETAS[stuck[0]]), _ZETAS[-1]) if len(stuck) else _ZETAS[-1])
+    if e >= measured[0]:
+        return 0.0
+    return float(np.interp(-e, -measured, _ZETAS))
+
+
+def _tiny() -> tuple[mujoco.MjModel, mujoco.MjData]:
+    """A sphere of radius 0.1 on a slide joint over a plane, with the core's contact options."""
+    if not _TINY:
+        spec = mujoco.MjSpec()
+        _apply_options("calibration", spec, {})
+        spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1])
+        ball = spec.worldbody.add_body(name="ball")
+        ball.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.1, 0, 0], mass=1.0)
+        ball.add_joint(type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1])
+        model = spec.compile()
+        model.geom_solimp[:] = [IMPEDANCE, IMPEDANCE, 0.001, 0.5, 2.0]
+        _TINY.append((model, mujoco.MjData(model)))
+    return _TINY[0]
+
+
+def _calibrate(dt: float, wn: float, gravity: float, phases: int = 3) -> np.ndarray:
+    """Measured restitution for each damping ratio of ``_ZETAS`` (mean over impact phases)."""
+    model, data = _tiny()
+    model.opt.timestep = dt
+    model.opt.gravity[:] = (0.0, 0.0, -gravity)
+    v = CALIBRATION_SPEED
+    limit = int(8 * np.pi / (wn * dt)) + 20
+    out = np.zeros(len(_ZETAS))
+    for k, zeta in enumerate(_ZETAS):
+        model.geom_solref[:] = (-wn * wn, -2.0 * zeta * wn)
+        for p in range(phases):
+            z0 = 0.1 + (p + 0.5) / phases * v * dt
+            mujoco.mj_resetData(model, data)
+            data.qpos[0], data.qvel[0] = z0, -v
+            out[k] += _bounce(model, data, z0, v, gravity, limit) / phases
+    return out
+
+
+def _bounce(model, data, z0: float, v: float, gravity: float, limit: int) -> float:
+    touched = False
+    for _ in range(limit):
+        mujoco.mj_step(model, data)
+        if data.ncon:
+            touched = True
+        elif touched and data.qvel[0] > 0:
+            vz = data.qvel[0]
+            return float(np.sqrt(max(vz * vz + 2 * gravity * (data.qpos[0] - z0), 0.0)) / v)
+    return 0.0
+
+
+# -- helpers of the core's structures ------------------------------------------------------------------
+def joint_slice(model: mujoco.MjModel, j: int) -> tuple[int, int, int, int]:
+    """(qpos address, qpos size, dof address, dof count) of joint ``j``."""
+    size = {0: (7, 6), 1: (4, 3)}.get(int(model.jnt_type[j]), (1, 1))
+    return int(model.jnt_qposadr[j]), size[0], int(model.jnt_dofadr[j]), size[1]
+
+
+def pose_index(pairs: list[tuple[int, int]]) -> tuple:
+    """Flat indices of (layout row, body id) pairs into position (3) and quaternion (4) blocks."""
+    rows, ids = [p[0] for p in pairs], [p[1] for p in pairs]
+    return flat_index(rows, 3), flat_index(ids, 3), flat_index(rows, 4), flat_index(ids, 4)
+
+
+def flat_index(rows: list[int], width: int) -> slice | np.ndarray:
+    """Flat positions of ``rows`` of a C-ordered (n, width) array: a slice when they are contiguous."""
+    if rows and rows == list(range(rows[0], rows[0] + len(rows))):
+        return slice(rows[0] * width, (rows[0] + len(rows)) * width)
+    return (np.asarray(rows, dtype=int).reshape(-1, 1) * width + np.arange(width)).reshape(-1)
+
+
+def carry_over(old, new) -> None:
+    """Start structure ``new`` from the state of structure ``old`` (the core's compiled structures):
+    joints, actuators and equalities by name; joints that were frozen start at their frozen value, at rest."""
+    m, d = new.model, new.data
+    mujoco.mj_resetData(m, d)
+    d.time = old.data.time
+    frozen = {j: v for entry in old.edits[0] for j, v in entry[2]}
+    od = old.data
+    for name, (qa, nq, da, nv) in new.joint_slices.items():
+        if name in old.joint_slices:
+            oqa, _, oda, _ = old.joint_slices[name]
+            d.qpos[qa:qa + nq] = od.qpos[oqa:oqa + nq]
+            d.qvel[da:da + nv] = od.qvel[oda:oda + nv]
+            d.qacc_warmstart[da:da + nv] = od.qacc_warmstart[oda:oda + nv]
+        elif name in frozen:
+            d.qpos[qa:qa + nq] = frozen[name]
+    acts = {old.model.actuator(a).name: a for a in range(old.model.nu)}
+    for a in range(m.nu):
+        k = acts.get(m.actuator(a).name)
+        if k is not None:
+            d.ctrl[a] = od.ctrl[k]
+            n = int(m.actuator_actnum[a])
+            if n:
+                d.act[m.actuator_actadr[a]:m.actuator_actadr[a] + n] = \
+                    od.act[old.model.actuator_actadr[k]:old.model.actuator_actadr[k] + n]
+    for e in range(m.neq):
+        name = m.equality(e).name
+        k = mujoco.mj_name2id(old.model, mujoco.mjtObj.mjOBJ_EQUALITY, name) if name else -1
+        if k >= 0:
+            d.eq_active[e] = od.eq_active[k]
+    for b in np.flatnonzero(m.body_mocapid >= 0):
+        k = old.body_id.get(m.body(int(b)).name)
+        if k is not None and old.model.body_mocapid[k] >= 0:
+            new_id, old_id = m.body_mocapid[b], old.model.body_mocapid[k]
+            d.mocap_pos[new_id], d.mocap_quat[new_id] = od.mocap_pos[old_id], od.mocap_quat[old_id]

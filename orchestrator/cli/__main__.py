@@ -1,0 +1,5 @@
+"""``python -m dynabrain.orchestrator.cli``: the ``dynabrain`` command."""
+
+from .main import main
+
+main()

@@ -1,0 +1,129 @@
+"""The ``dynabrain`` command line. Exit codes: 0 ok, 1 an expectation failed or a run failed,
+2 bad input (a scenario that does not validate)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from ..kernel.errors import DynabrainError, ScenarioError
+from ..kernel.units import format_duration
+from ..scenario.runner import RunResult, run_scenario
+from .common import console, err_console, fail_scenario, load_or_exit
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="dynabrain: a co-simulation orchestrator a robot brain embeds.")
+
+
+@app.command()
+def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
+        realtime: bool = typer.Option(False, "--realtime", help="pace the run at real time"),
+        duration: str | None = typer.Option(None, help="override world.duration (e.g. 2s)"),
+        log: Path | None = typer.Option(None, "--log", help="record the run to an MCAP file"),
+        live: bool = typer.Option(False, "--live", help="serve the run to Foxglove over WebSocket (loopback)"),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar")) -> None:
+    """Run a scenario to its end and check its expectations."""
+    sc = load_or_exit(scenario)
+    if duration is not None:
+        from ..kernel.units import parse_duration_ns
+
+        sc.duration_ns = parse_duration_ns(duration)
+    try:
+        world = sc.build()
+    except ScenarioError as exc:
+        fail_scenario(exc)
+    from .log import attach_run_outputs
+
+    try:
+        outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console)
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[t]}"),
+                      TimeRemainingColumn(), console=console, transient=True, disable=quiet) as bar:
+            task = bar.add_task(sc.model.name, total=sc.duration_ns // world.dt_ns, t="")
+
+            def progress(done: int, total: int) -> None:
+                bar.update(task, completed=done, t=f"t={done * world.dt_ns / 1e9:.3f}s")
+
+            result = run_scenario(sc, world, progress=progress, realtime=True if realtime else None)
+        history = world.history.describe()
+        outputs.finish(result)
+    finally:
+        world.close()  # also on Ctrl-C: observers (the log) are closed and stay readable
+    _summary(result, history)
+    raise typer.Exit(0 if result.ok else 1)
+
+
+def _summary(result: RunResult, history: str) -> None:
+    console.print(f"[bold]{result.scenario}[/]: simulated {result.sim_time:.3f} s ({result.ticks} ticks) in "
+                  f"{result.wall_time:.3f} s wall, real-time factor {result.realtime_factor:.1f}")
+    console.print(f"history: {history}", markup=False)
+    if result.error:
+        console.print(f"[bold red]run stopped:[/] {result.error}", markup=False)
+    if result.expectations:
+        table = Table(show_header=True, header_style="bold")
+        table.add_column("check")
+        table.add_column("when")
+        table.add_column("result")
+        for exp in result.expectations:
+            when = f"t={exp.start * result.dt_ns / 1e9:g}s"
+            if exp.end != exp.start:
+                when += f"..{exp.end * result.dt_ns / 1e9:g}s"
+            status = "[green]pass[/]" if exp.passed else f"[red]FAIL[/] {exp.detail}"
+            table.add_row(exp.label, when, status)
+        console.print(table)
+    verdict = "[green]all checks passed[/]" if result.ok else "[red]failed[/]"
+    console.print(verdict)
+
+
+@app.command()
+def check(scenario: Path = typer.Argument(..., help="scenario YAML file")) -> None:
+    """Validate a scenario (every problem at once) and show what it builds."""
+    sc = load_or_exit(scenario)
+    try:
+        world = sc.build()
+    except ScenarioError as exc:
+        fail_scenario(exc)
+    try:
+        console.print(f"[bold]{sc.model.name}[/]: valid")
+        console.print(f"step {format_duration(world.dt_ns)}, duration {format_duration(sc.duration_ns)}, "
+                      f"core {world.core.ENGINE if world.core else 'none'}")
+        table = Table("module", "class", "period", "inputs", "outputs", header_style="bold")
+        for step in world._structure.plan:
+            rec = step.record
+            table.add_row(rec.name, type(rec.module).__name__, format_duration(rec.period_ns),
+                          str(len(rec.inputs)), str(len(rec.outputs)))
+        console.print(table)
+        console.print(f"schedule: {' -> '.join(world.schedule_order())}")
+        for conn in world.connections:
+            console.print(f"  {conn}", markup=False)
+        if world.core is not None:
+            console.print(f"objects: {len(world.core.objects())}, selected: {len(world.core.selection)}")
+        console.print(f"expectations: {len(sc.expectations)}; events: {len(sc.model.events)}")
+    finally:
+        world.close()
+
+
+def _register_plugins() -> None:
+    """Command groups that live in their own files (FMU authoring, logs, the Zenoh bridge)."""
+    from . import fmu, log, serve
+
+    fmu.register(app)
+    log.register(app)
+    serve.register(app)
+
+
+_register_plugins()
+
+
+def main() -> None:
+    try:
+        app()
+    except DynabrainError as exc:
+        err_console.print(f"error: {exc}", markup=False)
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    main()

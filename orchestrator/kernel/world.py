@@ -1,0 +1,763 @@
+"""The World: time, modules, the bus, history, and the brain's API (after EusDyna's d-* calls).
+
+Every public method takes the world lock, so any of them may be called from another thread while
+`start()` runs the loop; `with world.lock():` groups several calls so the loop cannot step between
+them.
+
+One tick (n -> n+1), the failure policy of each phase in brackets:
+
+1. if the world was edited since the state of tick n was saved, save it again (edits are inputs);
+2. fire the scenario's events due at tick n  [an error rolls back to tick n and is raised];
+3. copy delayed connections; step each due module in schedule order, copying its direct inputs
+   first  [an exception rolls back to tick n and is raised as `ModuleError`];
+4. tick = n+1; save the state in history; tell observers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fnmatch
+import itertools
+import threading
+import time as _time
+import zlib
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+from .compiled import state_saver
+from .core import PhysicsCore
+from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
+from .history import History, WorldState
+from .module import NO_PORTS, PARAM_CHANGES, Module, Port, SetupContext
+from .observers import Observer, WorldEvent, WorldView
+from .structure import (
+    SAVE_NONE,
+    SAVE_PARAMS,
+    UNRESTORABLE,
+    BusLayout,
+    Connection,
+    ModuleRecord,
+    Structure,
+    build_structure,
+    split_signal,
+)
+from .suggest import did_you_mean
+from .units import NS_PER_S, format_duration, parse_duration_ns
+
+ScheduledAction = Callable[["World"], None]
+
+
+class World:
+    """A simulated world the brain owns. See the module docstring for one tick."""
+
+    def __init__(self, name: str = "world", *, step: int | str = "2ms", seed: int = 0,
+                 history: int = 1000, core: PhysicsCore | None = None):
+        self.name = name
+        self.dt_ns = step if isinstance(step, int) else parse_duration_ns(step)
+        if self.dt_ns <= 0:
+            raise DynabrainError(f"the base step must be positive, got {step!r}")
+        self.seed = int(seed)
+        self._lock = threading.RLock()
+        self._history = History(history)
+        self._structure = build_structure((), ())
+        # what `_capture` saves, made again after a change of structure or parameters or a restore:
+        self._params: tuple[dict[str, Any], ...] = ()  # every module's parameter dict, shared by states
+        self._save_states: Callable[[], tuple] = tuple  # every module's state, in one call
+        self._saver_of: Structure | None = None  # ... for this structure
+        self._saver_seen = -1  # ... as of this count of `PARAM_CHANGES`
+        self._buf = np.zeros(0)
+        self._mv = memoryview(self._buf)  # the bus again: the tick's copies are cheaper on it
+        self._ro = _read_only(self._buf)  # and read-only, for observers
+        self._tick = 0
+        self._dirty = True
+        self._closed = False
+        self._core: PhysicsCore | None = None
+        self._observers: list[Observer] = []
+        self._view = WorldView(self)
+        self._scheduled: dict[int, list[tuple[str, ScheduledAction]]] = {}
+        self._known: dict[int, Module] = {}  # every module ever set up here, closed at close()
+        self._thread: threading.Thread | None = None
+        self._stop_flag = threading.Event()
+        self._thread_error: BaseException | None = None
+        self._source = "api"  # who is editing: "scenario" while scheduled actions run
+        self._snapshots = itertools.count(1)
+        self._id = id(self)
+        self.error: BaseException | None = None
+        if core is not None:
+            self.add_module(core)
+
+    # -- properties ---------------------------------------------------------------------------------
+    @property
+    def tick_count(self) -> int:
+        return self._tick
+
+    @property
+    def time(self) -> float:
+        """Simulated time in seconds (``tick * step``, computed from integers)."""
+        return self._tick * self.dt_ns / NS_PER_S
+
+    @property
+    def time_ns(self) -> int:
+        return self._tick * self.dt_ns
+
+    @property
+    def core(self) -> PhysicsCore | None:
+        return self._core
+
+    @property
+    def modules(self) -> dict[str, Module]:
+        return {rec.name: rec.module for rec in self._structure.records}
+
+    @property
+    def connections(self) -> tuple[Connection, ...]:
+        return self._structure.connections
+
+    @property
+    def history(self) -> History:
+        return self._history
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def lock(self) -> threading.RLock:
+        """The world lock: ``with world.lock(): ...`` keeps the loop from stepping in between."""
+        return self._lock
+
+    def schedule_order(self) -> list[str]:
+        """Module names in the order they step within a tick."""
+        return [step.record.name for step in self._structure.plan]
+
+    def signals(self) -> list[str]:
+        return list(self._structure.layout.slots)
+
+    # -- stepping -------------------------------------------------------------------------------------
+    def tick(self, n: int = 1) -> None:
+        """Advance ``n`` base steps (d-tick)."""
+        with self._lock:
+            self._check_open()
+            for _ in range(n):
+                self._step_once()
+
+    def backtick(self, n: int = 1) -> None:
+        """Go back ``n`` ticks, exactly (d-backtick). Stepping forward again with the same inputs
+        reproduces every state bit for bit."""
+        with self._lock:
+            self._check_open()
+            if n == 0:
+                return
+            target = self._history.peek_back(n)
+            self._check_restorable(target, f"backtick({n})")
+            from_tick = self._tick
+            self._history.drop_newest(n)
+            self._apply(target)
+            self._dirty = False
+            for obs in self._observers:
+                obs.on_rollback(self._view, from_tick)
+
+    def _step_once(self) -> None:
+        if self._dirty:
+            self._history.replace_top(self._capture())
+            self._dirty = False
+        n = self._tick
+        current: str | None = "event"
+        try:
+            events = self._scheduled.get(n)
+            if events:
+                self._source = "scenario"
+                for label, action in events:
+                    current = f"event {label}"
+                    action(self)
+                self._source = "api"
+            compiled = self._structure.compiled  # after the events: they may have changed the structure
+            current = None
+            compiled.run(n, n * self.dt_ns, self._mv, self._buf)
+        except Exception as exc:  # roll back to the last good tick, then report
+            self._source = "api"
+            if current is None:  # a module's step: the traceback says which
+                current = compiled.failed_module(exc.__traceback__) or "?"
+            raise self._rollback_failed_tick(n, current, exc) from exc
+        except BaseException:  # KeyboardInterrupt and the like: roll back, re-raise as is
+            self._source = "api"
+            self._apply(self._history.top)
+            self._dirty = False
+            raise
+        self._tick = n + 1
+        self._history.push(self._capture())
+        self._dirty = False
+        if self._observers:
+            for obs in self._observers:
+                obs.on_tick(self._view)
+
+    def _rollback_failed_tick(self, n: int, where: str, exc: Exception) -> ModuleError:
+        self._apply(self._history.top)
+        self._dirty = False
+        if isinstance(exc, ModuleError):
+            err = exc if exc.tick is not None else type(exc)(exc.module, exc.call, n, exc.cause)
+        elif where.startswith("event"):
+            err = ModuleError(where, "apply", n, exc)
+        else:
+            err = ModuleError(where, "step", n, exc)
+        self.error = err
+        self._emit("error", message=str(err), module=err.module, failed_tick=n)
+        for obs in self._observers:
+            obs.on_rollback(self._view, n)
+        return err
+
+    # -- state ----------------------------------------------------------------------------------------
+    def _capture(self) -> WorldState:
+        structure = self._structure
+        if self._saver_of is not structure or self._saver_seen != PARAM_CHANGES[0]:
+            self._make_saver(structure)
+        return WorldState(self._id, self._tick, structure, self._buf.copy(), self._save_states(), self._params)
+
+    def _make_saver(self, structure: Structure) -> None:
+        """What each state of history holds until the structure or a parameter changes, or a state is
+        restored: the modules' parameter dicts (one shared tuple), the state of each module whose
+        steps leave it alone (`Module.steps_change_state`: saved now, then shared), and a call to
+        ``get_state`` for the others."""
+        self._params = tuple([rec.module._param_values for rec in structure.records])
+        entries: list[tuple[bool, Any]] = []
+        for rec, how in zip(structure.records, structure.saves, strict=True):
+            module = rec.module
+            if how == SAVE_NONE:
+                entries.append((False, UNRESTORABLE))
+            elif how == SAVE_PARAMS:
+                entries.append((False, None))
+            elif module.steps_change_state():
+                entries.append((True, module.get_state))
+            else:
+                entries.append((False, module.get_state()))
+        self._save_states = state_saver(entries)
+        self._saver_of, self._saver_seen = structure, PARAM_CHANGES[0]
+
+    def _apply(self, state: WorldState) -> None:
+        if state.structure is not self._structure:
+            self._install(state.structure, carry_values=False)
+        np.copyto(self._buf, state.bus)
+        for rec, saved, params in zip(state.structure.records, state.states, state.params, strict=True):
+            if saved is not UNRESTORABLE:
+                rec.module._restore_params(params)
+                rec.module.set_state(saved)
+        self._tick = state.tick
+        self._saver_of = None  # the states kept as they were may have been restored to others
+
+    def _check_restorable(self, state: WorldState, what: str) -> None:
+        bad = state.unrestorable()
+        if bad:
+            raise RollbackError(f"{what} refused: module(s) {', '.join(bad)} cannot roll back "
+                                "(capability can_rollback is false)")
+
+    def snapshot(self) -> WorldState:
+        """The whole world's state now; `restore` brings it back. Each snapshot has an ``id``, and
+        observers get a ``snapshot`` event with it (a replay can then restore the same one)."""
+        with self._lock:
+            self._check_open()
+            state = self._capture()
+            state.id = next(self._snapshots)
+            self._emit("snapshot", id=state.id)
+            return state
+
+    def restore(self, state: WorldState) -> None:
+        """Return to a snapshot of this world. History restarts at the restored state."""
+        with self._lock:
+            self._check_open()
+            if not isinstance(state, WorldState) or state.world_id != self._id:
+                raise RollbackError("restore() takes a snapshot made by this same world (use fork() to copy)")
+            self._check_restorable(state, "restore")
+            from_tick = self._tick
+            self._apply(state)
+            self._history.clear()
+            self._history.push(state)
+            self._dirty = False
+            self._emit("restore", from_tick=from_tick, snapshot=state.id)
+            for obs in self._observers:
+                obs.on_rollback(self._view, from_tick)
+
+    def fork(self, name: str | None = None) -> World:
+        """An independent world in the same state (for prediction: plan, try, discard)."""
+        import copy
+
+        with self._lock:
+            self._check_open()
+            refused = [r.name for r in self._structure.records if not r.module.CAPABILITIES.can_fork]
+            if refused:
+                raise ForkError(f"fork refused: module(s) {', '.join(refused)} cannot fork")
+            memo: dict[int, Any] = {}
+            bindings = {}
+            for rec in self._structure.records:
+                bindings[rec.name] = rec.module._drop_ports()
+            clones: dict[str, Module] = {}
+            try:
+                for rec in self._structure.records:
+                    clones[rec.name] = copy.deepcopy(rec.module, memo)
+            except BaseException:
+                for clone in clones.values():  # free what was copied (FMU instances, processes)
+                    _close_quietly(clone)
+                raise
+            finally:
+                for rec in self._structure.records:
+                    rec.module._take_ports(bindings[rec.name])
+            other = World(name or f"{self.name}-fork", step=self.dt_ns, seed=self.seed,
+                          history=self._history.depth)
+            records = [ModuleRecord(r.name, clones[r.name], r.period_ticks, r.phase, r.period_ns, r.inputs,
+                                    r.outputs) for r in self._structure.records]
+            other._install(build_structure(records, self._structure.connections), carry_values=False)
+            np.copyto(other._buf, self._buf)
+            other._tick = self._tick
+            other._scheduled = {k: list(v) for k, v in self._scheduled.items()}
+            other._core = clones.get(self._core.name) if self._core is not None else None
+            other._known = {id(m): m for m in clones.values()}
+            for rec in other._structure.records:
+                rec.module.bind()
+            return other
+
+    # -- structure edits ------------------------------------------------------------------------------
+    def add_module(self, module: Module, *, period: int | str | None = None,
+                   connect: Iterable[Connection | Sequence[Any]] = ()) -> None:
+        """Add a module at the current tick (also while running). It is set up, bound and started
+        now; on any failure the world is left as it was."""
+        with self._lock:
+            self._check_open()
+            if not isinstance(module, Module):
+                raise DynabrainError(f"add_module takes a Module, got {type(module).__name__}")
+            if self._structure.record(module.name) is not None:
+                raise WiringError(f"module name {module.name!r} is used twice")
+            period_ns = self._period_ns(module, period)
+            if isinstance(module, PhysicsCore) and self._core is not None:
+                raise WiringError(f"world already has a physics core ({self._core.name!r})")
+            ctx = SetupContext(self.name, self.dt_ns, period_ns, self._tick, self._rng_for(module.name),
+                               module if isinstance(module, PhysicsCore) else self._core)
+            _call(module, "setup", self._tick, module.setup, ctx)
+            try:
+                record = ModuleRecord(module.name, module, period_ns // self.dt_ns,
+                                      self._tick % (period_ns // self.dt_ns), period_ns,
+                                      tuple(module.inputs()), tuple(module.outputs()))
+                conns = [as_connection(c) for c in connect]
+                new = build_structure((*self._structure.records, record), (*self._structure.connections, *conns))
+            except BaseException:
+                _close_quietly(module)
+                raise
+            old = self._structure
+            self._install(new, carry_values=True)
+            try:
+                module.bind()
+                _call(module, "start", self._tick, module.start, self._tick * self.dt_ns)
+            except BaseException:
+                self._install(old, carry_values=True)
+                _close_quietly(module)
+                raise
+            self._known[id(module)] = module
+            if isinstance(module, PhysicsCore):
+                self._core = module
+            self._dirty = True
+            self._emit("module_added", module=module.name, spec=module_spec(module, period_ns, conns))
+
+    def remove_module(self, name: str) -> None:
+        """Remove a module at the current tick. Inputs it drove keep their last value. The module
+        stays alive (a rollback may bring it back) until the world closes."""
+        with self._lock:
+            self._check_open()
+            rec = self._require_module(name)
+            if rec.module is self._core:
+                raise WiringError(f"the physics core {name!r} cannot be removed")
+            records = [r for r in self._structure.records if r.name != name]
+            conns = [c for c in self._structure.connections
+                     if split_signal(c.src)[0] != name and split_signal(c.dst)[0] != name]
+            self._install(build_structure(records, conns), carry_values=True)
+            self._dirty = True
+            self._emit("module_removed", module=name)
+
+    def connect(self, src: str, dst: str, *, delay: bool = False) -> None:
+        """Connect output ``src`` to input ``dst`` (both ``module.port``)."""
+        with self._lock:
+            self._check_open()
+            conn = Connection(src, dst, delay)
+            self._install(build_structure(self._structure.records, (*self._structure.connections, conn)),
+                          carry_values=True)
+            self._dirty = True
+            self._emit("connect", src=src, dst=dst, delay=delay)
+
+    def disconnect(self, dst: str) -> None:
+        """Remove the connection driving input ``dst`` (it keeps its last value)."""
+        with self._lock:
+            self._check_open()
+            if self._structure.driver_of(dst) is None:
+                raise WiringError(f"no connection drives {dst!r}")
+            conns = [c for c in self._structure.connections if c.dst != dst]
+            self._install(build_structure(self._structure.records, conns), carry_values=True)
+            self._dirty = True
+            self._emit("disconnect", dst=dst)
+
+    def _install(self, structure: Structure, *, carry_values: bool) -> None:
+        """Make ``structure`` current: allocate the bus, carry values by name, rebind modules."""
+        old_layout, old_buf = self._structure.layout, self._buf
+        buf = np.zeros(structure.layout.size)
+        for slot in structure.layout.slots.values():  # start values first: new ports begin there
+            if slot.port.start is not None:
+                buf[slot.start:slot.start + slot.size] = np.broadcast_to(
+                    np.asarray(slot.port.start, dtype=np.float64), slot.shape).reshape(-1)
+        if carry_values:
+            for name, slot in structure.layout.slots.items():
+                old = old_layout.slots.get(name)
+                if old is not None and old.size == slot.size and slot.port.view_of is None:
+                    buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
+        self._buf, self._mv, self._ro = buf, memoryview(buf), _read_only(buf)
+        self._structure = structure
+        for rec in structure.records:
+            inp, out = {}, {}
+            for ports, target, writable in ((rec.inputs, inp, False), (rec.outputs, out, True)):
+                for port in ports:
+                    slot = structure.layout.slots[f"{rec.name}.{port.name}"]
+                    view = buf[slot.start:slot.start + slot.size].reshape(slot.shape)
+                    view.setflags(write=writable)
+                    target[port.name] = view
+            rec.module._take_ports((inp, out, _flat(buf, structure.layout, rec, rec.inputs, False),
+                                    _flat(buf, structure.layout, rec, rec.outputs, True)))
+            rec.module.bind()
+
+    # -- scene edits (delegated to the core; part of its state) ----------------------------------------
+    def make(self, objects: Iterable[str]) -> None:
+        """Simulate only ``objects``; every other object is frozen where it stands (d-make).
+        Names may be glob patterns (``box_*``)."""
+        with self._lock:
+            core = self._require_core("make")
+            names = expand_names(_names(objects), core.objects(), "object", "make")
+            core.make(names)
+            self._edited("make", objects=names)
+
+    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
+        """Join bodies ``a`` and ``b`` as they stand (d-make-joint); returns the joint's name."""
+        with self._lock:
+            core = self._require_core("make_joint")
+            expand_names([a, b], core.bodies(), "body", "make_joint")
+            joint = core.make_joint(a, b, name)
+            self._edited("make_joint", a=a, b=b, joint=joint)
+            return joint
+
+    def remove_joint(self, name: str) -> None:
+        with self._lock:
+            self._require_core("remove_joint").remove_joint(name)
+            self._edited("remove_joint", joint=name)
+
+    def no_collision(self, objects: Iterable[str]) -> None:
+        """Ignore contacts among ``objects`` (d-no-collision)."""
+        with self._lock:
+            core = self._require_core("no_collision")
+            names = expand_names(_names(objects), core.bodies(), "body", "no_collision")
+            core.no_collision(names)
+            self._edited("no_collision", objects=names)
+
+    def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
+        """Move a free body to a pose, at rest."""
+        with self._lock:
+            core = self._require_core("place")
+            expand_names([body], core.bodies(), "body", "place")
+            core.place(body, pos, quat)
+            self._write_core_outputs()
+            self._edited("place", body=body, pos=list(map(float, pos)),
+                         quat=None if quat is None else list(map(float, quat)))
+
+    def _write_core_outputs(self) -> None:
+        refresh = getattr(self._core, "refresh_outputs", None)
+        if refresh is not None:
+            refresh()
+
+    def _edited(self, kind: str, **detail: Any) -> None:
+        self._dirty = True
+        self._emit(kind, **detail)
+
+    # -- values ---------------------------------------------------------------------------------------
+    def get(self, name: str) -> Any:
+        """A signal (``module.port``; ``body.pos`` is short for the core's ``body.pos``) or a
+        parameter (``module.param``). Signals come back as copies."""
+        with self._lock:
+            self._check_open()
+            slot = self._resolve_signal(name)
+            if slot is not None:
+                value = self._buf[slot.start:slot.start + slot.size]
+                return float(value[0]) if slot.shape == () else value.reshape(slot.shape).copy()
+            module, key = self._split_param(name)
+            return module.params[key]
+
+    def set(self, name: str, value: Any) -> None:
+        """Set a run-time parameter (``module.param``) or an unconnected input (``module.port``)."""
+        with self._lock:
+            self._check_open()
+            target = self.settable(name)
+            if isinstance(target, str):
+                slot = self._structure.layout.slots[target]
+                arr = np.asarray(value, dtype=np.float64)
+                if arr.shape != slot.shape:
+                    raise WiringError(f"{target} has shape {slot.shape}, got a value of shape {arr.shape}")
+                self._buf[slot.start:slot.start + slot.size] = arr.reshape(-1)
+                self._edited("set", name=target, value=arr.tolist())
+                return
+            module, key = target
+            module.set_param(key, value, running=self._tick > 0)
+            new = module.params[key]
+            self._edited("param", name=f"{module.name}.{key}", value=new.tolist() if hasattr(new, "tolist") else new)
+
+    def settable(self, name: str) -> str | tuple[Module, str]:
+        """What `set(name, ...)` would change: an input signal's full name, or (module, parameter).
+        Raises, naming the closest settable name, when ``name`` cannot be set."""
+        with self._lock:
+            slot = self._resolve_signal(name)
+            if slot is not None:
+                full = self._full_signal_name(name)
+                if slot.direction != "in":
+                    raise WiringError(f"{full} is an output of its module; only inputs and parameters can be set")
+                conn = self._structure.driver_of(full)
+                if conn is not None:
+                    raise WiringError(f"{full} is driven by {conn.src}; disconnect it before setting it")
+                return full
+            return self._split_param(name, settable=True)
+
+    def _full_signal_name(self, name: str) -> str:
+        slots = self._structure.layout.slots
+        if name in slots or self._core is None:
+            return name
+        return f"{self._core.name}.{name}"
+
+    def _resolve_signal(self, name: str):
+        slots = self._structure.layout.slots
+        return slots.get(name) or (slots.get(f"{self._core.name}.{name}") if self._core is not None else None)
+
+    def _split_param(self, name: str, settable: bool = False) -> tuple[Module, str]:
+        module_name, sep, key = name.partition(".")
+        rec = self._structure.record(module_name) if sep else None
+        if rec is None or key not in rec.module.param_specs():
+            layout = self._structure.layout.slots
+            signals = [n for n in layout if not settable or layout[n].direction == "in"]
+            candidates = [f"{r.name}.{p}" for r in self._structure.records for p in r.module.param_specs()] + signals
+            raise DynabrainError(f"no signal or parameter named {name!r}" + did_you_mean(name, candidates))
+        return rec.module, key
+
+    # -- scenario events ------------------------------------------------------------------------------
+    def at(self, t: int | float | str, label: str, action: ScheduledAction) -> int:
+        """Schedule ``action(world)`` at the start of the tick at time ``t`` (ns int, seconds float
+        or a duration string). Scheduled actions are part of the world's definition: they fire again
+        when a rollback replays their tick. Returns the tick."""
+        ns = t if isinstance(t, int) else parse_duration_ns(t if isinstance(t, str) else f"{t}s")
+        if ns % self.dt_ns:
+            raise DynabrainError(f"event {label!r} at {format_duration(ns)} is not on a tick of "
+                                 f"{format_duration(self.dt_ns)}")
+        tick = ns // self.dt_ns
+        with self._lock:
+            self._scheduled.setdefault(tick, []).append((label, action))
+        return tick
+
+    # -- observers ------------------------------------------------------------------------------------
+    def observe(self, observer: Observer) -> None:
+        with self._lock:
+            self._observers.append(observer)
+
+    def unobserve(self, observer: Observer) -> None:
+        with self._lock:
+            self._observers.remove(observer)
+
+    def _emit(self, kind: str, **detail: Any) -> None:
+        if not self._observers:
+            return
+        event = WorldEvent(self._tick, kind, detail, self._source)
+        for obs in self._observers:
+            obs.on_event(self._view, event)
+
+    # -- the loop in a thread -------------------------------------------------------------------------
+    def start(self, realtime: bool | float = False, *, until: float | None = None) -> None:
+        """Run the loop in a thread (d-start). ``realtime``: False as fast as possible, True at real
+        time, a number for a speed factor. ``until``: stop by itself at this simulated time (s)."""
+        with self._lock:
+            self._check_open()
+            if self.running:
+                raise DynabrainError("the world is already running")
+            self._stop_flag.clear()
+            self._thread_error = None
+            factor = 1.0 if realtime is True else (float(realtime) if realtime else None)
+            stop_tick = None if until is None else round(until * NS_PER_S / self.dt_ns)
+            self._thread = threading.Thread(target=self._run, args=(factor, stop_tick),
+                                            name=f"dynabrain-{self.name}", daemon=True)
+            self._thread.start()
+
+    def _run(self, factor: float | None, stop_tick: int | None) -> None:
+        wall0 = _time.perf_counter()
+        stepped = 0
+        while not self._stop_flag.is_set():
+            with self._lock:
+                if stop_tick is not None and self._tick >= stop_tick:
+                    break
+                try:
+                    self._step_once()
+                except BaseException as exc:
+                    self._thread_error = exc
+                    break
+            stepped += 1
+            if factor:
+                ahead = wall0 + stepped * self.dt_ns / NS_PER_S / factor - _time.perf_counter()
+                if ahead > 0:
+                    self._stop_flag.wait(ahead)
+            elif stepped % 64 == 0:
+                _time.sleep(0)  # let callers waiting for the lock in
+
+    def stop(self) -> None:
+        """Stop the loop thread; re-raises an error that stopped it."""
+        thread = self._thread
+        if thread is None:
+            return
+        self._stop_flag.set()
+        if thread is not threading.current_thread():
+            thread.join()
+        self._thread = None
+        if self._thread_error is not None:
+            err, self._thread_error = self._thread_error, None
+            raise err
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait for the loop thread to end by itself (``until``); True when it has."""
+        thread = self._thread
+        if thread is None:
+            return True
+        thread.join(timeout)
+        return not thread.is_alive()
+
+    # -- closing --------------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop, tell observers, close every module this world set up (d-end)."""
+        with contextlib.suppress(BaseException):
+            self.stop()
+        with self._lock:
+            if self._closed:
+                return
+            for obs in list(self._observers):
+                with contextlib.suppress(Exception):
+                    obs.on_close(self._view)
+            self._closed = True
+            for module in self._known.values():
+                _close_quietly(module)
+            self._known.clear()
+            self._history.clear()
+
+    def __enter__(self) -> World:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- helpers --------------------------------------------------------------------------------------
+    def _check_open(self) -> None:
+        if self._closed:
+            raise WorldClosedError(f"world {self.name!r} is closed")
+
+    def _require_module(self, name: str) -> ModuleRecord:
+        rec = self._structure.record(name)
+        if rec is None:
+            raise WiringError(f"no module {name!r}" + did_you_mean(name, self._structure.names))
+        return rec
+
+    def _require_core(self, call: str) -> PhysicsCore:
+        self._check_open()
+        if self._core is None:
+            raise DynabrainError(f"{call}() needs a physics core, and this world has none")
+        return self._core
+
+    def _period_ns(self, module: Module, period: int | str | None) -> int:
+        value = period if period is not None else module.DEFAULT_PERIOD
+        ns = self.dt_ns if value is None else (value if isinstance(value, int) else parse_duration_ns(value))
+        if ns <= 0 or ns % self.dt_ns:
+            raise WiringError(f"module {module.name!r}: period {format_duration(ns)} is not a whole multiple "
+                              f"of the base step {format_duration(self.dt_ns)}")
+        return ns
+
+    def _rng_for(self, name: str) -> np.random.Generator:
+        return np.random.default_rng([self.seed, zlib.crc32(name.encode())])
+
+    def status(self) -> dict[str, Any]:
+        """A plain summary of the world."""
+        with self._lock:
+            return {
+                "name": self.name, "tick": self._tick, "time": self.time, "step_ns": self.dt_ns,
+                "running": self.running, "modules": self.schedule_order(),
+                "history": {"depth": self._history.depth, "available": self._history.available,
+                            "memory_bytes": self._history.memory_bytes()},
+                "selection": list(self._core.selection) if self._core is not None else [],
+            }
+
+
+def module_spec(module: Module, period_ns: int, connections: Sequence[Connection] = ()) -> dict[str, Any]:
+    """A plain description from which the same module can be made again (logs, replay, the bridge):
+    the scenario's module syntax, with parameters in SI."""
+    own = getattr(module, "scenario_spec", None)  # modules not made from a class path (FMUs) say how
+    if own is not None:
+        spec: dict[str, Any] = dict(own())
+    else:
+        params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in module.params.items()}
+        spec = {"name": module.name, "python": f"{type(module).__module__}:{type(module).__qualname__}",
+                "params": params}
+    spec["period"] = f"{period_ns}ns"
+    if module.targets:
+        spec["targets"] = list(module.targets)
+    if connections:
+        spec["connect"] = [[c.src, c.dst, {"delay": True}] if c.delay else [c.src, c.dst] for c in connections]
+    return spec
+
+
+def _flat(buf: np.ndarray, layout: BusLayout, rec: ModuleRecord, ports: Sequence[Port], writable: bool) -> np.ndarray:
+    """One flat view of a module's own ports of one direction (the bus lays them out in a row)."""
+    own = [layout.slots[f"{rec.name}.{p.name}"] for p in ports if p.view_of is None]
+    if not own:
+        return NO_PORTS
+    view = buf[own[0].start:own[-1].start + own[-1].size]
+    view.setflags(write=writable)
+    return view
+
+
+def _read_only(buf: np.ndarray) -> np.ndarray:
+    view = buf.view()
+    view.setflags(write=False)
+    return view
+
+
+def as_connection(value: Connection | Sequence[Any]) -> Connection:
+    if isinstance(value, Connection):
+        return value
+    if isinstance(value, str) or len(value) not in (2, 3):
+        raise WiringError(f"a connection is [source, destination] or [source, destination, {{delay: true}}], "
+                          f"got {value!r}")
+    delay = bool(value[2].get("delay", False)) if len(value) == 3 and isinstance(value[2], dict) else False
+    return Connection(str(value[0]), str(value[1]), delay)
+
+
+def expand_names(names: Sequence[str], known: Sequence[str], kind: str, call: str) -> list[str]:
+    """Names with glob patterns expanded against ``known``; an unknown name or empty pattern is an error."""
+    out: list[str] = []
+    for name in names:
+        if any(ch in name for ch in "*?["):
+            matched = fnmatch.filter(known, name)
+            if not matched:
+                raise DynabrainError(f"{call}(): pattern {name!r} matches no {kind}")
+            out += [m for m in matched if m not in out]
+        elif name not in known:
+            raise DynabrainError(f"{call}(): unknown {kind} {name!r}" + did_you_mean(name, known))
+        elif name not in out:
+            out.append(name)
+    return out
+
+
+def _names(objects: Iterable[str] | str) -> list[str]:
+    return [objects] if isinstance(objects, str) else [str(o) for o in objects]
+
+
+def _call(module: Module, call: str, tick: int, fn: Callable[..., Any], *args: Any) -> Any:
+    try:
+        return fn(*args)
+    except DynabrainError:
+        raise
+    except Exception as exc:
+        raise ModuleError(module.name, call, tick, exc) from exc
+
+
+def _close_quietly(module: Module) -> None:
+    with contextlib.suppress(Exception):
+        module.close()

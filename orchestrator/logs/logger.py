@@ -1,0 +1,385 @@
+"""The MCAP logger: an observer that records a run to one file (what it holds: `logs.schema`).
+
+    logger = McapLogger("run.mcap").attach(world, scenario)   # right after the world is built
+    world.tick(1000)
+    world.close()                                             # or logger.close()
+
+**Rollbacks.** A tick's messages wait in memory for ``window`` ticks (plus a batch of ``batch``)
+before they are written. A rollback marks the waiting ticks it discards, and they are written, in
+the order they were produced, to the ``/discarded/...`` channels; ``/bus``, ``/tf`` and ``/scene``
+keep what finally happened. Every rollback is an event on ``/events`` (``from_tick``, ``to_tick``,
+``cause``: backtick, restore or failed_tick), and every message carries its *epoch* (rollbacks
+before it) in the MCAP ``sequence`` field. The rule readers apply is: for each tick, the run is the
+message produced last, and a rollback to tick k discards every message of a later tick produced before
+it. A rollback that reaches further back than the window finds ticks already written; the file is
+then rewritten on close (`logs.recover.rewrite`) so that those, too, move to ``/discarded/...``.
+``dynabrain run`` cannot roll back (except a failed tick, which discards nothing), so it uses no window.
+
+**Crash safety.** The file is written by a child process (`logs.sink`). If the simulation's process
+is killed, the child writes everything it was handed and finishes the file: only the ticks still
+waiting in the simulation's process are lost (the ``window``, plus at most ``batch`` ticks or
+``flush_s / 2`` seconds of them). If both die, the chunk being filled is lost too (at most
+``chunk_bytes`` of messages, or ``flush_s`` seconds of them), and `dynabrain log recover` turns what is
+left into a valid file. With the defaults and no window (``dynabrain run``), a run at real time loses
+under half a second either way.
+
+**Cost.** The stepping thread copies the bus row into a preallocated block of shared memory (rows of
+consecutive ticks of one layout and epoch: a row's tick is its block's first tick plus its index, so
+a tick makes no Python object) and, every ``batch`` ticks, tells the child writer which rows to take.
+The child encodes them (a few numpy operations per channel and batch: poses are taken from the bus's
+``<core>.<body>.pos`` / ``.quat`` columns), compresses and writes, on a core of its own and under an
+interpreter lock of its own. Every writer call (schemas, channels, events) goes to the child the same
+way, so the file holds the records in the order they were made. ``writer="thread"`` keeps the writer
+in this process instead (on a thread; no child process, but encoding then competes with the
+simulation for the interpreter lock). Figures: ``bench/logging_cost.py``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+from ..kernel.errors import DynabrainError
+from ..kernel.observers import Observer, WorldEvent, WorldView
+from .meta import run_metadata
+from .scene import SceneDrawing
+from .schema import METADATA_NAME, BusCodec, FieldNumbers, event_bytes, foxglove_descriptor, pose_columns
+from .sink import NOTHING_WRITTEN, ProcessSink, ThreadSink
+
+_log = logging.getLogger("dynabrain.mcap")
+BLOCK_BYTES = 2 << 20
+"""Bus rows a block holds at most (bytes; and at most ``batch`` rows)."""
+MAX_BLOCKS = 24
+"""Blocks of rows per bus layout at most (48 MiB): when the writer is that far behind, the stepping
+thread waits for it."""
+
+
+class _Block:
+    """Bus rows of consecutive ticks of one layout and epoch, in preallocated memory: row ``i`` is tick
+    ``first + i``. Rows ``[0, sent)`` are handed to the writer; rows from ``cut`` on were discarded by a
+    rollback. A block takes no more rows once ``sealed``; the writer hands it back to its pool after
+    writing its last rows (``pool``)."""
+
+    __slots__ = ("codec", "cut", "epoch", "extra", "first", "n", "pool", "rows", "scenes", "sealed", "sent",
+                 "shared_extra", "shared_rows")
+
+    def __init__(self, codec: BusCodec, capacity: int, extra: int, pool: deque, sink: ThreadSink | ProcessSink):
+        self.codec, self.pool = codec, pool
+        self.rows, self.shared_rows = sink.new_rows((capacity, codec.size))  # shared: the child writer maps it
+        self.extra, self.shared_extra = sink.new_rows((capacity, extra)) if extra else (None, None)
+        self.scenes: list[tuple[int, bytes]] = []
+
+    def start(self, first: int, epoch: int) -> _Block:
+        self.first, self.epoch, self.n, self.sent, self.cut, self.sealed = first, epoch, 0, 0, len(self.rows), False
+        self.scenes = []
+        return self
+
+
+class McapLogger(Observer):
+    """Records a world's run to an MCAP file. See the module docstring.
+
+    ``decimate``: poses every that many ticks; ``scene_every``: the scene every that many ticks
+    (default: one simulated second) and after each `make`; ``window``: ticks held back for rollbacks;
+    ``batch``: ticks encoded and written together (at most ``flush_s / 2`` s after the first is due);
+    ``chunk_bytes``, ``flush_s``, ``level``: chunk size and age, zstd level; ``writer``: ``"process"``
+    (a child process writes the file; the default) or ``"thread"`` (a thread of this process).
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, decimate: int = 1, scene_every: int | None = None,
+                 window: int = 64, batch: int = 256, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
+                 level: int = -1, writer: str = "process"):
+        for name, value, low in (("decimate", decimate, 1), ("window", window, 0), ("batch", batch, 1),
+                                 ("scene_every", scene_every or 1, 1), ("chunk_bytes", chunk_bytes, 1)):
+            if not isinstance(value, int) or value < low:
+                raise DynabrainError(f"McapLogger: {name} must be an integer >= {low}, got {value!r}")
+        if writer not in ("process", "thread"):
+            raise DynabrainError(f"McapLogger: writer must be 'process' or 'thread', got {writer!r}")
+        self.path = os.fspath(path)
+        self.writer = writer
+        self.decimate, self.scene_every, self.window, self.batch = decimate, scene_every, window, batch
+        self._writer_args = {"chunk_bytes": chunk_bytes, "flush_s": flush_s, "level": level}
+        self._max_wait = flush_s / 2
+        self._drained_at = time.monotonic()
+        self._sink: ThreadSink | ProcessSink | None = None
+        self._pending: deque[_Block] = deque()  # blocks with rows not handed to the writer yet, oldest first
+        self._waiting = 0  # rows of ``_pending`` not handed to the writer
+        self._block: _Block | None = None  # the block taking rows (None: the next row starts one)
+        self._expect = -1  # the tick whose row the block takes next
+        self._pools: dict[int, deque[_Block]] = {}
+        self._numbers = FieldNumbers()
+        self._codecs: dict[tuple, BusCodec] = {}
+        self._pose_index: dict[int, tuple[np.ndarray, list[str]]] = {}
+        self._codec: BusCodec | None = None
+        self._missing: list[str] = []
+        self._epoch = 0
+        self._seq = 0
+        self._dirty = True
+        self._scene: SceneDrawing | None = None
+        self._bodies: list[str] | None = None
+        self._made: dict[int, int] = {}  # blocks made per layout
+        self._next_scene = 0
+        self._written_max = -1
+        self._compact = False
+        self._restoring = False
+        self._restored_snapshot: int | None = None
+        self._failing: int | None = None
+        self._lock: Any = None
+        self._world: Any = None
+        self.closed = False
+
+    # -- attaching ------------------------------------------------------------------------------------
+    def attach(self, world: Any, scenario: Any = None) -> McapLogger:
+        """Start recording ``world`` (built from ``scenario``, when there is one) at its current tick."""
+        with world.lock():
+            view = WorldView(world)
+            self._world, self._lock, self._dt = world, world.lock(), world.dt_ns
+            if self.scene_every is None:
+                self.scene_every = max(1, round(1e9 / self._dt))
+            if view.core is not None:
+                self._scene = SceneDrawing(view.core)
+                self._bodies = list(view.core.bodies())
+            descriptors = {cls.DESCRIPTOR.full_name: foxglove_descriptor(cls) for cls in (FrameTransforms, SceneUpdate)}
+            sink = ProcessSink if self.writer == "process" else ThreadSink
+            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors)
+            try:
+                settings = {"decimate": self.decimate, "scene_every": self.scene_every, "window": self.window,
+                            "batch": self.batch, "writer": self.writer, **self._writer_args}
+                self._sink.call("metadata", METADATA_NAME, run_metadata(world, scenario, settings))
+                self._refresh_layout(view)
+                self._push(view, view.bus())
+            except BaseException:
+                self._sink.abort()
+                raise
+            world.observe(self)
+        return self
+
+    # -- observer hooks -------------------------------------------------------------------------------
+    def on_tick(self, view: WorldView) -> None:
+        """The hot path: copy the bus row into the block; everything else happens per batch."""
+        bus, tick, block = view.bus(), view.tick, self._block
+        if (self._dirty or block is None or tick != self._expect or block.n == len(block.rows)
+                or tick >= self._next_scene or bus.size != block.rows.shape[1] or self._missing):
+            if self.closed:
+                return
+            if self._dirty or bus.size != self._codec.size:
+                self._refresh_layout(view)
+            self._push(view, bus)
+        else:
+            block.rows[block.n] = bus
+            block.n += 1
+            self._expect = tick + 1
+            self._waiting += 1
+        waiting = self._waiting - self.window
+        if waiting >= self.batch or (waiting > 0 and time.monotonic() - self._drained_at >= self._max_wait):
+            self._drain(waiting)
+
+    def on_event(self, view: WorldView, event: WorldEvent) -> None:
+        if self.closed:
+            return
+        if event.kind == "restore":
+            self._restoring = True
+            self._restored_snapshot = event.detail.get("snapshot")
+        elif event.kind == "error":
+            self._failing = event.detail.get("failed_tick")
+        elif event.kind in ("module_added", "module_removed"):
+            self._dirty = True
+        elif event.kind == "make":
+            self._next_scene = view.tick
+        self._event(event.kind, event.tick, event.detail, event.source)
+
+    def on_rollback(self, view: WorldView, from_tick: int) -> None:
+        if self.closed:
+            return
+        to = view.tick
+        cause = "restore" if self._restoring else "failed_tick" if self._failing == from_tick == to else "backtick"
+        self._restoring, self._failing = False, None
+        last = to - 1 if cause == "restore" else to  # a restore replaces tick `to` itself
+        self._discard_after(last)
+        if self._written_max > last:
+            self._compact = True
+        self._written_max = min(self._written_max, last)
+        self._epoch += 1
+        self._seal()
+        detail = {"from_tick": from_tick, "to_tick": to, "cause": cause, "epoch": self._epoch}
+        if cause == "restore" and self._restored_snapshot:
+            detail["snapshot"] = self._restored_snapshot
+        self._event("rollback", to, detail, "api")
+        self._dirty = True
+        self._next_scene = to
+        if cause == "restore":
+            self._refresh_layout(view)
+            self._push(view, view.bus())
+
+    def on_close(self, view: WorldView) -> None:
+        try:
+            self.close()
+        except Exception as exc:  # the world suppresses observer errors at close; do not lose this one
+            _log.error("closing the MCAP log %s failed: %s", self.path, exc)
+
+    # -- results and closing ----------------------------------------------------------------------------
+    def log_result(self, result: Any) -> None:
+        """Record a run's expectation results and its end (`dynabrain run` calls this)."""
+        if self._lock is None or self.closed:
+            raise DynabrainError(f"the log {self.path} is not recording (attach it to a world first)")
+        with self._lock:
+            tick = int(result.ticks)
+            for exp in result.expectations:
+                detail = {"name": exp.label, "that": exp.that, "passed": bool(exp.passed), "detail": exp.detail,
+                          "from_tick": exp.start, "to_tick": exp.end}
+                self._event("expect", min(exp.end, tick), detail, "log")
+            self._event("run_end", tick, {"ticks": tick, "sim_time": result.sim_time, "wall_time": result.wall_time,
+                                          "error": result.error, "ok": result.ok}, "log")
+
+    def close(self) -> None:
+        """Write what is waiting, the summary and the footer; rewrite the file if a rollback reached
+        ticks already written (see the module docstring). Idempotent."""
+        if self.closed or self._sink is None:
+            return
+        with self._lock:
+            self.closed = True
+            with contextlib.suppress(ValueError):  # not observing any more (the caller took it off)
+                self._world.unobserve(self)
+            try:
+                self._drain(self._waiting)
+            finally:
+                self._sink.finish()
+        if self._compact:
+            from .recover import rewrite
+
+            tmp = self.path + ".compacting"
+            rewrite(self.path, tmp)
+            os.replace(tmp, self.path)
+
+    @property
+    def stats(self) -> dict[str, float]:
+        """What was written (messages, chunks, bytes; complete once closed), the rollback epoch, and the
+        writer's CPU time (the child process's, or the writer thread's)."""
+        done = self._sink.stats if self._sink is not None else NOTHING_WRITTEN
+        return {**done, "epoch": self._epoch}
+
+    # -- the stepping thread: rows into blocks ----------------------------------------------------------
+    def _push(self, view: WorldView, bus: np.ndarray) -> None:
+        """Any row the hot path does not take: a new block, the poses the bus lacks, the scene."""
+        tick = view.tick
+        block = self._block
+        if block is None or tick != self._expect or block.n == len(block.rows) or block.codec is not self._codec:
+            block = self._start_block(tick)
+        row = block.n
+        block.rows[row] = bus
+        if self._missing and tick % self.decimate == 0:
+            core = view.core
+            block.extra[row] = np.concatenate([np.concatenate(core.body_pose(b)) for b in self._missing])
+        if tick >= self._next_scene:
+            if self._scene is not None:
+                block.scenes.append((row, self._scene.encode(tick * self._dt)))
+            self._next_scene = tick + self.scene_every
+        block.n += 1
+        self._expect = tick + 1
+        self._waiting += 1
+
+    def _start_block(self, tick: int) -> _Block:
+        self._seal()
+        codec = self._codec
+        pool = self._pools.get(codec.key)
+        if pool is None:
+            pool = self._pools[codec.key] = deque()
+        sink = self._sink
+        sink.poll()
+        while not pool and self._made.get(codec.key, 0) >= MAX_BLOCKS:  # the writer is behind: wait for it
+            sink.wait()
+        try:
+            block = pool.popleft()
+        except IndexError:
+            capacity = max(1, min(self.batch, BLOCK_BYTES // (8 * codec.size)))
+            block = _Block(codec, capacity, 7 * len(self._missing), pool, sink)
+            self._made[codec.key] = self._made.get(codec.key, 0) + 1
+        self._block = block.start(tick, self._epoch)
+        self._pending.append(block)
+        return block
+
+    def _seal(self) -> None:
+        """The block taking rows takes no more; one already written goes back (after the writer's jobs)."""
+        block, self._block = self._block, None
+        if block is None:
+            return
+        block.sealed = True
+        if block.sent == block.n:  # nothing of it waits (every older block was handed over before it)
+            self._pending.remove(block)
+            if block.n == 0:
+                block.pool.append(block)
+            else:
+                self._sink.release(block)
+
+    def _discard_after(self, last: int) -> None:
+        """Mark the waiting rows of ticks after ``last`` discarded (newest first, as the rule says)."""
+        for block in reversed(self._pending):
+            lo, hi = block.sent, min(block.cut, block.n)
+            if lo >= hi:
+                continue
+            if block.first + hi - 1 <= last:
+                break
+            block.cut = max(lo, last + 1 - block.first)
+            if block.cut > lo:
+                break
+
+    def _refresh_layout(self, view: WorldView) -> None:
+        slots = view.signal_slots()
+        size = view.bus().size
+        signature = (*sorted((n, o, tuple(sh), u) for n, (o, sh, u) in slots.items()), size)
+        codec = self._codecs.get(signature)
+        if codec is None:
+            codec = BusCodec.from_view(slots, size, self._numbers, len(self._codecs) + 1)
+            self._codecs[signature] = codec
+            cols, missing = self._pose_index[codec.key] = self._pose_plan(view, codec)
+            self._sink.call("layout", codec.key, codec.metadata(), cols, missing)
+            detail: dict[str, Any] = {"layout": codec.key, "signals": len(codec.slots), "values": size}
+            if self._codec is not None:
+                detail["added"] = sorted(set(codec.by_name) - set(self._codec.by_name))
+                detail["removed"] = sorted(set(self._codec.by_name) - set(codec.by_name))
+            self._event("layout", view.tick, detail, "log")
+        self._codec = codec
+        self._missing = self._pose_index[codec.key][1]
+        self._dirty = False
+
+    def _pose_plan(self, view: WorldView, codec: BusCodec) -> tuple[np.ndarray, list[str]]:
+        if self._bodies is None:
+            return np.zeros((0, 7), dtype=np.intp), []
+        return pose_columns(view.core.name, self._bodies, codec)
+
+    def _drain(self, n: int) -> None:
+        """Hand the ``n`` oldest waiting rows to the writer, in one call."""
+        self._drained_at = time.monotonic()
+        parts = []
+        while n > 0 and self._pending:
+            block = self._pending[0]
+            a = block.sent
+            b = min(block.n, a + n)
+            if b > a:
+                for lo, hi, discarded in ((a, min(b, block.cut), False), (max(a, block.cut), b, True)):
+                    if hi > lo:
+                        parts.append((block, lo, hi, discarded))
+                        if not discarded:
+                            self._written_max = max(self._written_max, block.first + hi - 1)
+                block.sent = b
+                n -= b - a
+                self._waiting -= b - a
+            if block.sent < block.n or not block.sealed:
+                break
+            self._pending.popleft()
+            parts.append((block, 0, 0, None))  # its last rows are written: back to its pool
+        if parts:
+            self._sink.rows(parts)
+
+    def _event(self, kind: str, tick: int, detail: dict, source: str) -> None:
+        self._seq += 1
+        body = {"seq": self._seq, "tick": tick, "time": tick * self._dt / 1e9, "epoch": self._epoch, "kind": kind,
+                "source": source, "detail": detail}
+        self._sink.call("event", tick * self._dt, event_bytes(body), self._epoch)

@@ -1,0 +1,199 @@
+"""Reading a log: its index (metadata, channels, events, which messages are the run) and its bus rows.
+
+`read_index` scans a file once and keeps everything but the message data: per channel the count and
+time range, the events of a dynabrain log, and each message's (epoch, tick) for `final_mask`, the rule
+that tells the run from what rollbacks discarded (see `logs.logger`). Files from other tools are read
+too (channels, counts, times); they just have no dynabrain metadata.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from .meta import RunInfo
+from .scan import Channel, Header, LogError, Message, Metadata, ScanReport, Schema, scan
+from .schema import DISCARDED, FORMAT, METADATA_NAME, TOPIC_BUS, TOPIC_EVENTS, BusCodec
+
+
+def family(topic: str) -> str:
+    """``/discarded/bus`` -> ``/bus``: the topic a discarded message would have had."""
+    return topic[len(DISCARDED):] if topic.startswith(DISCARDED + "/") else topic
+
+
+@dataclass
+class LogIndex:
+    path: str
+    report: ScanReport
+    header: Header | None = None
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    counts: dict[int, int] = field(default_factory=dict)
+    times: dict[int, tuple[int, int]] = field(default_factory=dict)
+    events: list[dict] = field(default_factory=list)
+    keys: dict[str, list[tuple[int, int, int]]] = field(default_factory=dict)
+    """Per topic family: (epoch, tick, file position) of each message."""
+
+    @property
+    def info(self) -> RunInfo | None:
+        """The run's metadata, when this is a dynabrain log."""
+        meta = self.metadata.get(METADATA_NAME)
+        if meta is None or meta.get("format") != FORMAT:
+            return None
+        try:
+            return RunInfo.parse(meta)
+        except (KeyError, ValueError) as exc:
+            raise LogError(f"{self.path}: the dynabrain metadata is damaged ({exc})") from None
+
+    @property
+    def rollbacks(self) -> dict[int, int]:
+        """Epoch ended -> the tick the rollback went back to."""
+        out = {}
+        for ev in self.events:
+            if ev.get("kind") == "rollback":
+                try:
+                    out[int(ev["detail"]["epoch"]) - 1] = int(ev["detail"]["to_tick"])
+                except (KeyError, TypeError, ValueError):
+                    raise LogError(f"{self.path}: rollback event {ev.get('seq')} is damaged: {ev}") from None
+        return out
+
+    def final(self, topic_family: str) -> set[int]:
+        """File positions of the messages of ``topic_family`` that make up the run."""
+        keys = self.keys.get(topic_family, [])
+        mask = final_mask([(e, t) for e, t, _ in keys], self.rollbacks)
+        return {pos for (_e, _t, pos), keep in zip(keys, mask, strict=True) if keep}
+
+    def bus_codec(self, channel_id: int) -> BusCodec:
+        ch = self.channels[channel_id]
+        try:
+            return BusCodec.from_metadata(ch.metadata)
+        except (KeyError, ValueError, TypeError) as exc:
+            raise LogError(f"{self.path}: channel {ch.topic} (id {channel_id}) has no usable bus layout ({exc})"
+                           ) from None
+
+    def is_bus(self, channel_id: int) -> bool:
+        ch = self.channels.get(channel_id)
+        return ch is not None and family(ch.topic) == TOPIC_BUS and "layout" in ch.metadata
+
+    @property
+    def time_range(self) -> tuple[int, int] | None:
+        if not self.times:
+            return None
+        return min(t[0] for t in self.times.values()), max(t[1] for t in self.times.values())
+
+
+def read_index(path: str | os.PathLike[str], *, lenient: bool = False) -> LogIndex:
+    """Scan ``path`` once (see the module docstring). Strict by default: a truncated file raises."""
+    index = LogIndex(os.fspath(path), ScanReport())
+    dt_ns, pos, dynabrain = 1, 0, False
+    for rec in scan(path, index.report, lenient=lenient):
+        if isinstance(rec, Message):
+            pos += 1
+            _count(index, rec)
+            ch = index.channels.get(rec.channel_id)
+            if ch is None:
+                continue
+            if ch.topic == TOPIC_EVENTS and ch.encoding == "json" and dynabrain:
+                index.events.append(_event(rec, index.path))
+            else:
+                index.keys.setdefault(family(ch.topic), []).append((rec.sequence, rec.log_time // dt_ns, pos))
+        elif isinstance(rec, Channel):
+            index.channels[rec.id] = rec
+        elif isinstance(rec, Schema):
+            index.schemas[rec.id] = rec
+        elif isinstance(rec, Metadata):
+            index.metadata[rec.name] = rec.values
+            if rec.name == METADATA_NAME and rec.values.get("format") == FORMAT:
+                dynabrain = True
+                dt_ns = int(rec.values["dt_ns"]) if rec.values.get("dt_ns", "").isdigit() else 1
+        elif isinstance(rec, Header):
+            index.header = rec
+    return index
+
+
+def _count(index: LogIndex, msg: Message) -> None:
+    cid = msg.channel_id
+    index.counts[cid] = index.counts.get(cid, 0) + 1
+    lo, hi = index.times.get(cid, (msg.log_time, msg.log_time))
+    index.times[cid] = (min(lo, msg.log_time), max(hi, msg.log_time))
+
+
+def _event(msg: Message, path: str) -> dict:
+    try:
+        event = json.loads(msg.data)
+    except ValueError as exc:
+        raise LogError(f"{path}: an event at log time {msg.log_time} ns is not valid JSON ({exc})") from None
+    if not isinstance(event, dict) or "kind" not in event:
+        raise LogError(f"{path}: an event at log time {msg.log_time} ns has no kind")
+    return event
+
+
+def final_mask(keys: list[tuple[int, int]], rollbacks: dict[int, int]) -> np.ndarray:
+    """Which of the messages (epoch, tick) of one topic make up the run.
+
+    In the order the messages were produced (by epoch, then tick), each message replaces any kept
+    message of the same or a later tick, and the rollback that ends epoch e drops the kept messages of
+    ticks after the tick it went back to.
+    """
+    order = sorted(range(len(keys)), key=lambda i: (keys[i][0], keys[i][1], i))
+    stack: list[tuple[int, int]] = []
+    epoch = 0
+
+    def roll_until(target: int) -> int:
+        e = epoch
+        while e < target:
+            back = rollbacks.get(e)
+            if back is not None:
+                while stack and stack[-1][0] > back:
+                    stack.pop()
+            e += 1
+        return e
+
+    for i in order:
+        e, tick = keys[i]
+        epoch = roll_until(e)
+        while stack and stack[-1][0] >= tick:
+            stack.pop()
+        stack.append((tick, i))
+    roll_until(max(rollbacks, default=-1) + 1)
+    mask = np.zeros(len(keys), dtype=bool)
+    mask[[i for _t, i in stack]] = True
+    return mask
+
+
+class BusRow(NamedTuple):
+    """One bus message, decoded."""
+
+    codec: BusCodec
+    epoch: int
+    tick: int
+    row: np.ndarray
+    pos: int
+    """Position of the message in the file (1 for the first message)."""
+    topic: str
+
+
+def iter_bus(path: str | os.PathLike[str], index: LogIndex, *, lenient: bool = False) -> Iterator[BusRow]:
+    """Every bus message (of the run and discarded ones), decoded, in file order."""
+    codecs: dict[int, BusCodec] = {}
+    pos = 0
+    for rec in scan(path, lenient=lenient):
+        if not isinstance(rec, Message):
+            continue
+        pos += 1
+        if not index.is_bus(rec.channel_id):
+            continue
+        codec = codecs.get(rec.channel_id)
+        if codec is None:
+            codec = codecs[rec.channel_id] = index.bus_codec(rec.channel_id)
+        if len(rec.data) != codec.length:
+            raise LogError(f"{index.path}: a bus message at log time {rec.log_time} ns has {len(rec.data)} bytes, "
+                           f"its layout {codec.length}")
+        rows, ticks, epochs = codec.decode(np.frombuffer(rec.data, dtype=np.uint8))
+        yield BusRow(codec, int(epochs[0]), int(ticks[0]), rows[0], pos, index.channels[rec.channel_id].topic)

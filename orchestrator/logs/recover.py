@@ -1,0 +1,106 @@
+"""Rewriting a log: recover what a killed run left, and compact a log after long rollbacks.
+
+`rewrite` copies a file record by record into a new, complete one (summary, indexes, footer). In a
+dynabrain log it also moves every message that is not part of the run (see `logs.read.final_mask`) to
+its ``/discarded/...`` topic, so ``/bus``, ``/tf`` and ``/scene`` hold exactly what finally happened.
+With ``lenient=True`` (``dynabrain log recover``) it stops before the first incomplete or damaged
+record instead of failing: every complete chunk is kept. Message order, times and sequence numbers
+are kept as they were.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from .read import LogIndex, family, read_index
+from .scan import Channel, Message, Schema, scan
+from .schema import DISCARDED, TOPIC_BUS
+from .write import McapWriter
+
+
+@dataclass(frozen=True)
+class RewriteReport:
+    complete: bool
+    """The source had its footer (nothing was lost)."""
+    chunks: int
+    messages: int
+    lost_bytes: int
+    """Bytes after the last complete record of the source (an unfinished chunk)."""
+    problem: str
+    ticks: tuple[int, int] | None
+    """First and last tick of the run kept, for a dynabrain log."""
+    moved: int
+    """Messages moved to /discarded/... topics."""
+
+
+def rewrite(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, lenient: bool = False) -> RewriteReport:
+    """Write ``dst`` from ``src`` (see the module docstring). ``dst`` is written whole or not at all."""
+    src, dst = os.fspath(src), os.fspath(dst)
+    index = read_index(src, lenient=lenient)
+    finals = {fam: index.final(fam) for fam in index.keys} if index.info is not None else None
+    header = index.header
+    part = dst + ".part"
+    writer = McapWriter(part, profile=header.profile if header else "", library=header.library if header else "")
+    try:
+        for name, values in index.metadata.items():
+            writer.add_metadata(name, values)
+        moved = _copy_records(src, index, writer, finals, lenient)
+        writer.finish()
+    except BaseException:
+        writer.close()
+        if os.path.exists(part):
+            os.remove(part)
+        raise
+    os.replace(part, dst)
+    return RewriteReport(index.report.complete, index.report.chunks, writer.messages,
+                         index.report.size - index.report.good_bytes if not index.report.complete else 0,
+                         index.report.problem, _tick_range(index, finals), moved)
+
+
+def _copy_records(src: str, index: LogIndex, writer: McapWriter, finals: dict[str, set[int]] | None,
+                  lenient: bool) -> int:
+    channels: dict[int, Channel] = {}
+    schemas: set[int] = set()
+    moved_ids: dict[int, int] = {}
+    next_id = max(index.channels, default=0) + 1
+    moved = pos = 0
+    for rec in scan(src, lenient=lenient):
+        if isinstance(rec, Schema) and rec.id not in schemas:
+            schemas.add(rec.id)
+            writer.add_schema(rec.name, rec.encoding, rec.data, schema_id=rec.id)
+        elif isinstance(rec, Channel) and rec.id not in channels:
+            channels[rec.id] = rec
+            writer.add_channel(rec.topic, rec.encoding, rec.schema_id, rec.metadata, channel_id=rec.id)
+        elif isinstance(rec, Message):
+            pos += 1
+            cid = rec.channel_id
+            ch = channels.get(cid)
+            if finals is not None and ch is not None and family(ch.topic) in finals:
+                fam = family(ch.topic)
+                target = fam if pos in finals[fam] else DISCARDED + fam
+                if target != ch.topic:
+                    moved += 1
+                    if cid not in moved_ids:
+                        moved_ids[cid] = writer.add_channel(target, ch.encoding, ch.schema_id, ch.metadata,
+                                                            channel_id=next_id)
+                        next_id += 1
+                    cid = moved_ids[cid]
+            writer.add_message(cid, rec.log_time, rec.data, rec.sequence)
+    return moved
+
+
+def _tick_range(index: LogIndex, finals: dict[str, set[int]] | None) -> tuple[int, int] | None:
+    if finals is None or TOPIC_BUS not in finals:
+        return None
+    ticks = [t for _e, t, p in index.keys[TOPIC_BUS] if p in finals[TOPIC_BUS]]
+    return (min(ticks), max(ticks)) if ticks else None
+
+
+def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str] | None = None) -> tuple[str, RewriteReport]:
+    """Write a valid log from what ``src`` holds (every complete chunk); returns (path, report)."""
+    src = os.fspath(src)
+    if dst is None:
+        stem = src[:-5] if src.endswith(".mcap") else src
+        dst = stem + ".recovered.mcap"
+    return os.fspath(dst), rewrite(src, dst, lenient=True)

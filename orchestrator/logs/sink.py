@@ -1,0 +1,550 @@
+"""Where an MCAP log is encoded and written: in a child process (the default) or on a thread.
+
+The logger (`logs.logger`) runs on the world's stepping thread: it copies bus rows into blocks and
+decides what is written when. A *sink* does the rest: it registers channels, encodes batches of rows
+into ``/bus``, ``/tf`` and ``/scene`` messages, writes events and metadata, and hands chunks to the
+`McapWriter`. Every sink call arrives in the order the logger made it.
+
+`ProcessSink` (the default) runs the sink in a child process (``python -m
+dynabrain.orchestrator.logs.sink``; it starts in about 0.15 s, and `attach` waits for it). Rows
+travel through shared memory (each block of rows is a file in ``/dev/shm``, or in the temporary
+folder when that is missing or full, mapped by both processes), calls through a pipe; the child
+acknowledges each batch so the block can take rows again. Encoding and compression then cost the
+simulation only the row copies: on a thread of the simulation's process they hold its interpreter
+lock part of the time, and logging the humanoid cost about 45% of its step that way
+(``bench/logging_cost.py``). If the simulation's process dies, the child sees the pipe close and
+finishes the file (summary and footer): nothing handed over is lost. A shared file's name is removed
+as soon as the child has mapped it (files of processes killed before that are removed by the next
+log started). `ThreadSink` runs the same sink on the
+writer's thread in this process (``McapLogger(writer="thread")``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import mmap
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from multiprocessing.connection import Connection
+from typing import Any
+
+import numpy as np
+
+from ..kernel.errors import DynabrainError
+from ..kernel.workers import spawn_worker
+from .schema import DISCARDED, EVENT_SCHEMA, TOPIC_BUS, TOPIC_EVENTS, TOPIC_SCENE, TOPIC_TF, BusCodec, PoseCodec
+from .write import McapWriter
+
+START_TIMEOUT_S = 60.0
+"""How long the child writer may take to start (it imports numpy; on a busy machine that is slow)."""
+FINISH_TIMEOUT_S = 300.0
+NOTHING_WRITTEN = {"messages": 0, "chunks": 0, "bytes": 0, "writer_cpu_s": 0.0}
+"""How long closing waits for a child writer to write what it was handed."""
+
+
+class LogSink:
+    """The writing side of a log (see the module docstring): runs where the `McapWriter` is."""
+
+    def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
+        self.writer = McapWriter(path, profile="dynabrain", **writer_args)
+        self.dt, self.decimate = dt_ns, decimate
+        self.poses = PoseCodec(bodies) if bodies is not None else None
+        self.descriptors = dict(descriptors)  # Foxglove schema name -> serialized FileDescriptorSet
+        self.layouts: dict[int, tuple[BusCodec, np.ndarray, list[str]]] = {}
+        self.channels: dict[tuple[str, int], int] = {}
+        self.schema_ids: dict[int | str, int] = {}
+        self.events_channel()
+
+    # -- calls ------------------------------------------------------------------------------------------
+    def metadata(self, name: str, values: Mapping[str, str]) -> None:
+        self.writer.add_metadata(name, values)
+
+    def layout(self, key: int, meta: Mapping[str, str], cols: np.ndarray, missing: list[str]) -> None:
+        """A bus layout (a codec, by its channel metadata) and where its poses are. The codecs encode a
+        row once now, so that their first real batch does not pay for the first use of their code."""
+        codec = BusCodec.from_metadata(meta)
+        self.layouts[key] = (codec, cols, missing)
+        row = np.zeros((1, codec.size))
+        codec.encode(row, np.zeros(1, np.int64), np.zeros(1, np.int64), self.dt)
+        if self.poses is not None:
+            self.poses.encode(np.zeros((1, len(self.poses.bodies), 3)), np.zeros((1, len(self.poses.bodies), 4)),
+                              np.zeros(1, np.int64))
+
+    def event(self, time_ns: int, data: bytes, epoch: int) -> None:
+        self.writer.add_message(self.events_channel(), time_ns, data, epoch)
+
+    def rows(self, key: int, rows: np.ndarray, extra: np.ndarray | None, first: int, epoch: int,
+             discarded: bool, scenes: Sequence[tuple[int, bytes]]) -> None:
+        """Encode rows of consecutive ticks (the first is ``first``; one layout, epoch and fate) into the chunk."""
+        codec, cols, missing = self.layouts[key]
+        prefix, w, dt = DISCARDED if discarded else "", self.writer, self.dt
+        n = len(rows)
+        ticks = np.arange(first, first + n, dtype=np.int64)
+        epochs = np.full(n, epoch, dtype=np.int64)
+        t_ns = ticks * dt
+
+        def bus(out: np.ndarray, part: slice) -> None:
+            codec.encode(rows[part], ticks[part], epochs[part], dt, out=out)
+
+        w.add_encoded(self.bus_channel(codec, prefix), t_ns, epochs, codec.length, bus)
+        if self.poses is not None:
+            due = np.flatnonzero(ticks % self.decimate == 0)
+            if len(due):
+                ext = rows if len(due) == n else rows[due]
+                if missing:
+                    ext = np.concatenate([ext, extra[due]], axis=1)
+                pose, times = ext[:, cols], t_ns[due]
+                poses = self.poses
+
+                def fill(out: np.ndarray, part: slice) -> None:
+                    poses.encode(pose[part, :, :3], pose[part, :, 3:], times[part], out=out)
+
+                w.add_encoded(self.proto_channel(prefix + TOPIC_TF, "foxglove.FrameTransforms"), times, epochs[due],
+                              poses.length, fill)
+        for row, scene in scenes:
+            w.add_message(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), (first + row) * dt,
+                          scene, epoch)
+
+    def finish(self) -> dict[str, float]:
+        """Write the summary and footer; what was written."""
+        w = self.writer
+        w.finish()
+        return {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written, "writer_cpu_s": w.thread_cpu_s}
+
+    # -- channels ---------------------------------------------------------------------------------------
+    def _channel(self, topic: str, make: Callable[[], int], key: int = 0) -> int:
+        cid = self.channels.get((topic, key))
+        if cid is None:
+            cid = self.channels[(topic, key)] = make()
+        return cid
+
+    def events_channel(self) -> int:
+        def make() -> int:
+            sid = self.writer.add_schema("dynabrain.Event", "jsonschema", json.dumps(EVENT_SCHEMA).encode())
+            return self.writer.add_channel(TOPIC_EVENTS, "json", sid)
+
+        return self._channel(TOPIC_EVENTS, make)
+
+    def bus_channel(self, codec: BusCodec, prefix: str) -> int:
+        def make() -> int:
+            sid = self.schema_ids.get(codec.key)
+            if sid is None:
+                sid = self.schema_ids[codec.key] = self.writer.add_schema(codec.schema_name, "protobuf",
+                                                                         codec.descriptor())
+            return self.writer.add_channel(prefix + TOPIC_BUS, "protobuf", sid, codec.metadata())
+
+        return self._channel(prefix + TOPIC_BUS, make, codec.key)
+
+    def proto_channel(self, topic: str, schema: str) -> int:
+        def make() -> int:
+            sid = self.schema_ids.get(schema)
+            if sid is None:
+                sid = self.schema_ids[schema] = self.writer.add_schema(schema, "protobuf", self.descriptors[schema])
+            return self.writer.add_channel(topic, "protobuf", sid)
+
+        return self._channel(topic, make)
+
+
+# -- shared rows ------------------------------------------------------------------------------------------
+class SharedRows:
+    """A float64 array in a file of shared memory (``/dev/shm`` where there is one), mapped here and, by
+    its path, in the child writer."""
+
+    def __init__(self, shape: tuple[int, ...]):
+        size = max(8, 8 * int(np.prod(shape)))
+        error: OSError | None = None
+        for folder in _row_folders():
+            try:
+                self._map, self.path = _reserve(folder, size)
+                break
+            except OSError as exc:
+                error = exc
+        else:
+            raise DynabrainError(f"no memory to share rows with the log writer ({size} bytes): {error}")
+        self.array = np.frombuffer(self._map, dtype=np.float64, count=int(np.prod(shape))).reshape(shape)
+
+    def release(self) -> None:
+        self.array = None  # type: ignore[assignment]
+        with contextlib.suppress(BufferError, ValueError):
+            self._map.close()
+        with contextlib.suppress(OSError):
+            os.unlink(self.path)
+
+
+def _reserve(folder: str, size: int) -> tuple[mmap.mmap, str]:
+    """A new file of ``size`` bytes in ``folder``, its memory reserved (a full tmpfs, such as a
+    container's small /dev/shm, refuses here rather than killing the simulation with SIGBUS when a
+    row is written), mapped."""
+    fd, path = tempfile.mkstemp(prefix=f"{_PREFIX}{os.getpid()}-", dir=folder)
+    try:
+        if hasattr(os, "posix_fallocate"):
+            os.posix_fallocate(fd, 0, size)
+        else:
+            os.ftruncate(fd, size)
+        return mmap.mmap(fd, size), path
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        raise
+    finally:
+        os.close(fd)
+
+
+def _mapped(path: str, shape: tuple[int, ...], maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> np.ndarray:
+    """The child's view of a shared array (mapped once per path)."""
+    hit = maps.get(path)
+    if hit is None:
+        with open(path, "r+b") as fh:
+            mm = mmap.mmap(fh.fileno(), 0)
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # both processes have it mapped now: the name is no longer needed
+        hit = maps[path] = (mm, np.frombuffer(mm, dtype=np.float64, count=int(np.prod(shape))).reshape(shape))
+    return hit[1]
+
+
+def remove_stale_rows() -> None:
+    """Remove shared-row files left by processes that no longer run (both killed before the child
+    mapped a block); their names carry the simulation's process id."""
+    for folder in _row_folders():
+        with contextlib.suppress(OSError):
+            for name in os.listdir(folder):
+                if not name.startswith(_PREFIX):
+                    continue
+                pid = name[len(_PREFIX):].split("-", 1)[0]
+                if pid.isdigit() and not _alive(int(pid)):
+                    with contextlib.suppress(OSError):
+                        os.unlink(os.path.join(folder, name))
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _row_folders() -> list[str]:
+    """Where shared rows go: ``/dev/shm`` (memory) where there is one, else (or when it is full) the
+    temporary folder."""
+    shm = ["/dev/shm"] if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else []
+    return list(dict.fromkeys([*shm, tempfile.gettempdir()]))
+
+
+_PREFIX = "dynabrain-log-"
+
+
+# -- the sinks the logger uses ----------------------------------------------------------------------------
+class ThreadSink:
+    """The sink on the writer's thread of this process."""
+
+    def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
+        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
+        self._writer = self._sink.writer
+        self._stats: dict[str, float] = {}
+
+    @staticmethod
+    def new_rows(shape: tuple[int, ...]) -> tuple[np.ndarray, None]:
+        """An array for rows (the writer's thread reads it as it is)."""
+        return np.empty(shape), None
+
+    def call(self, name: str, *args: Any) -> None:
+        method = getattr(self._sink, name)
+        self._writer.call(lambda: method(*args))
+
+    def rows(self, parts: list[tuple[Any, int, int, bool | None]]) -> None:
+        """Write ``parts`` (block, lo, hi, discarded), in order; a part with ``discarded`` None hands its
+        block back to its pool once everything before it is written."""
+        sink = self._sink
+
+        def job() -> None:
+            for block, lo, hi, discarded in parts:
+                if discarded is None:
+                    block.pool.append(block)
+                else:
+                    sink.rows(block.codec.key, block.rows[lo:hi], None if block.extra is None else block.extra[lo:hi],
+                              block.first + lo, block.epoch, discarded,
+                              [(r - lo, s) for r, s in block.scenes if lo <= r < hi])
+
+        self._writer.call(job)
+
+    def release(self, block: Any) -> None:
+        self._writer.call(lambda: block.pool.append(block))
+
+    def poll(self) -> None:
+        """Nothing to collect: blocks go back to their pools on the writer's thread."""
+
+    def wait(self) -> None:
+        """Give the writer's thread time to hand a block back."""
+        self._writer.check()
+        time.sleep(0.0005)
+
+    def finish(self) -> dict[str, float]:
+        self._stats = self._sink.finish()
+        return self._stats
+
+    def abort(self) -> None:
+        self._writer.close()
+
+    @property
+    def stats(self) -> dict[str, float]:
+        w = self._writer
+        return self._stats or {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written,
+                               "writer_cpu_s": w.thread_cpu_s}
+
+
+class ProcessSink:
+    """The sink in a child process (see the module docstring)."""
+
+    def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
+        try:  # refuse a path that cannot be written here and now, not at the child's first write
+            os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
+        except OSError as exc:
+            raise DynabrainError(f"cannot write the log {path}: {exc.strerror}") from None
+        self.path = path
+        remove_stale_rows()
+        try:
+            self._proc, self._conn = spawn_worker(__name__)
+        except OSError as exc:
+            raise DynabrainError(f"cannot start the log writer process for {path}: {exc}") from None
+        self._seq = 0
+        self._releases: deque[tuple[int, list[Any]]] = deque()
+        self._shared: list[SharedRows] = []
+        self._error: str | None = None
+        self._stats: dict[str, float] = {}
+        try:
+            self._send(("open", path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
+                        dict(descriptors)))
+            reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
+            if reply[0] != "ready":
+                raise DynabrainError(reply[1])
+        except BaseException:
+            self._end()
+            raise
+
+    def new_rows(self, shape: tuple[int, ...]) -> tuple[np.ndarray, SharedRows]:
+        """An array for rows in shared memory, and its handle (the child maps it by its path)."""
+        rows = SharedRows(shape)
+        self._shared.append(rows)
+        return rows.array, rows
+
+    def call(self, name: str, *args: Any) -> None:
+        self._send((name, *args))
+
+    def rows(self, parts: list[tuple[Any, int, int, bool | None]]) -> None:
+        batch, freed = [], []
+        for block, lo, hi, discarded in parts:
+            if discarded is None:
+                freed.append(block)
+                continue
+            extra = None if block.extra is None else (block.shared_extra.path, block.extra.shape)
+            batch.append((block.codec.key, (block.shared_rows.path, block.rows.shape), extra, lo, hi,
+                          block.first, block.epoch, discarded, [(r - lo, s) for r, s in block.scenes if lo <= r < hi]))
+        if batch:
+            self._send(("rows", batch))
+        if freed:
+            self._releases.append((self._seq, freed))
+        self.poll()
+
+    def release(self, block: Any) -> None:
+        self._releases.append((self._seq, [block]))
+        self.poll()
+
+    def poll(self) -> None:
+        """Take the child's acknowledgements: blocks whose rows it has encoded go back to their pools."""
+        conn = self._conn
+        try:
+            while conn.poll():
+                self._take(conn.recv())
+        except (EOFError, OSError):
+            self._error = self._error or f"the log writer process for {self.path} ended ({self._exit()})"
+        self._check()
+
+    def wait(self) -> None:
+        """Wait for the child's next acknowledgement (a block is free again)."""
+        if not self._conn.poll(FINISH_TIMEOUT_S):
+            raise DynabrainError(f"the log writer process for {self.path} wrote nothing for {FINISH_TIMEOUT_S:g} s "
+                                 f"({self._exit()})")
+        self.poll()
+
+    def finish(self) -> dict[str, float]:
+        try:
+            self._send(("finish",))
+            reply = self._wait(FINISH_TIMEOUT_S, "finish")
+            if reply[0] != "finished":
+                raise DynabrainError(reply[1])
+            self._stats = reply[1]
+        finally:
+            self._end(wait=False)  # the file is complete: no need to wait for the process to exit
+        return self._stats
+
+    def abort(self) -> None:
+        with contextlib.suppress(Exception):
+            self._send(("abort",))
+        self._end()
+
+    @property
+    def stats(self) -> dict[str, float]:
+        return self._stats or NOTHING_WRITTEN
+
+    # -- plumbing ---------------------------------------------------------------------------------------
+    def _send(self, message: tuple) -> None:
+        self._check()
+        try:
+            self._conn.send(message)
+        except (OSError, ValueError) as exc:
+            raise DynabrainError(f"the log writer process for {self.path} is gone ({self._exit()}): {exc}") from None
+        if message[0] == "rows":
+            self._seq += 1
+
+    def _take(self, message: tuple) -> None:
+        if message[0] == "done":
+            while self._releases and self._releases[0][0] <= message[1]:
+                for block in self._releases.popleft()[1]:
+                    block.pool.append(block)
+        elif message[0] == "error":
+            self._error = message[1]
+
+    def _wait(self, timeout: float, what: str) -> tuple:
+        """The child's next answer that is not an acknowledgement."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                ready = self._conn.poll(max(left, 0.0))
+            except (OSError, EOFError):
+                ready = True
+            if not ready:
+                raise DynabrainError(f"the log writer process for {self.path} did not {what} within {timeout:g} s")
+            try:
+                message = self._conn.recv()
+            except (OSError, EOFError):
+                return ("error", f"the log writer process for {self.path} ended ({self._exit()})")
+            if message[0] == "done":
+                self._take(message)
+                continue
+            return message
+
+    def _check(self) -> None:
+        if self._error is not None:
+            raise DynabrainError(self._error)
+
+    def _exit(self) -> str:
+        try:
+            code = self._proc.wait(1.0)
+        except subprocess.TimeoutExpired:
+            return "still running"
+        return f"killed by signal {-code}" if code < 0 else f"exit code {code}"
+
+    def _end(self, wait: bool = True) -> None:
+        """Close the pipe (the child ends when it sees that), and free the shared rows. ``wait``: until
+        the child has exited (killing it after a few seconds); else `subprocess` reaps it later."""
+        with contextlib.suppress(Exception):
+            self._conn.close()
+        if wait:
+            try:
+                self._proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+        for rows in self._shared:
+            rows.release()
+        self._shared.clear()
+
+
+def _serve(conn: Connection) -> None:
+    """The child writer: open the log as told, take calls until ``finish``. When the simulation's
+    process is gone (its end of the pipe closed, maybe in the middle of a message, or an answer to it
+    cannot be sent), finish the file with what arrived."""
+    try:
+        _op, path, writer_args, dt_ns, decimate, bodies, descriptors = conn.recv()
+        sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
+        sink.writer.warm_up()
+    except EOFError:
+        return
+    except BaseException as exc:  # reported to the parent, which raises it
+        _tell(conn, ("error", _message(exc)))
+        return
+    maps: dict[str, tuple[mmap.mmap, np.ndarray]] = {}
+    try:
+        if _tell(conn, ("ready",)):
+            _take_calls(conn, sink, path, maps)
+    finally:
+        for mm, _array in maps.values():
+            with contextlib.suppress(Exception):
+                mm.close()
+
+
+def _take_calls(conn: Connection, sink: LogSink, path: str, maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> None:
+    failed, done, gone = False, 0, False  # gone: answers cannot be sent; the calls still in the pipe are taken
+    cpu0 = time.process_time()
+    while True:
+        try:
+            message = conn.recv()
+        except Exception:  # the simulation's process is gone
+            break
+        op = message[0]
+        if op == "finish":
+            try:
+                stats = sink.finish()
+                stats["writer_cpu_s"] = time.process_time() - cpu0
+                _tell(conn, ("finished", stats))
+            except BaseException as exc:
+                _tell(conn, ("error", _message(exc)))
+            return
+        if op == "abort":
+            with contextlib.suppress(BaseException):
+                sink.writer.close()
+            return
+        answer = None
+        try:
+            if op == "rows":
+                done += 1
+                if not failed:
+                    for key, (rows_path, shape), extra, lo, hi, first, epoch, discarded, scenes in message[1]:
+                        rows = _mapped(rows_path, shape, maps)[lo:hi]
+                        more = None if extra is None else _mapped(extra[0], extra[1], maps)[lo:hi]
+                        sink.rows(key, rows, more, first + lo, epoch, discarded, scenes)
+                answer = ("done", done)
+            elif not failed:
+                getattr(sink, op)(*message[1:])
+        except BaseException as exc:  # the parent raises it at its next call
+            failed = True
+            answer = ("error", f"writing the log {path} failed: {_message(exc)}")
+        if answer is not None and not gone:
+            gone = not _tell(conn, answer)
+    with contextlib.suppress(BaseException):  # keep what it handed over
+        sink.finish()
+
+
+def _tell(conn: Connection, message: tuple) -> bool:
+    """Send to the simulation's process; False when it is gone."""
+    try:
+        conn.send(message)
+    except OSError:
+        return False
+    return True
+
+
+def _message(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, DynabrainError) else f"{type(exc).__name__}: {exc}"
+
+
+if __name__ == "__main__":
+    # Ctrl-C in a terminal, or a stop sent to the whole process group, is for the simulation: it
+    # closes its log, or dies and closes the pipe; either way this process then finishes the file
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    _serve(Connection(int(sys.argv[1])))

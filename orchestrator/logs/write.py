@@ -1,0 +1,385 @@
+"""A lean MCAP writer (https://mcap.dev/spec): chunked, zstd-compressed, indexed, crash-tolerant.
+
+Why not the ``mcap`` package's writer: it costs about 3.4 us a message in Python, a third of a
+two-cube tick by itself. Here a batch of equal-sized messages (one per tick of a channel) becomes
+message records with a few numpy operations, written straight into a reusable chunk buffer (fresh
+memory for every chunk would cost a page fault per 4 KiB). Files are read back by the ``mcap``
+package in the tests, as an independent check.
+
+Finished chunks are compressed (zstd level -1, its first fast level, by default: on the humanoid's
+log about 620 MB/s for a 2.38 ratio, where level 1 gives 520 MB/s for 2.40 and level 3 290 MB/s for
+2.53) and written by a thread of the writer's own, so compression overlaps the simulation on a second core.
+A caller can hand that thread whole jobs (`call`: encode a batch and add it, for instance): every
+writer call made inside a job runs there, in order, and its chunks are compressed there too.
+
+Crash safety. Bytes go to the file with ``os.write`` (no user-space buffer), one chunk at a time, so a
+process killed with SIGKILL leaves every chunk that was written. A chunk is finished when it holds
+``chunk_bytes`` of records or when its first record is ``flush_s`` seconds old (checked whenever a
+record is added), so a kill loses the chunk being filled and the finished ones still waiting for the
+thread (at most ``QUEUE_DEPTH`` jobs; in practice they are written within milliseconds). Schemas and
+channels are written into the chunk where they are registered (and repeated in the summary), so the
+complete chunks of a file can be decoded in order on their own.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import struct
+import threading
+import time
+import zlib
+from collections.abc import Callable, Mapping
+
+import numpy as np
+import zstandard
+
+from ..kernel.errors import DynabrainError
+
+MAGIC = b"\x89MCAP0\r\n"
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
+OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_METADATA = 0x07, 0x08, 0x0B, 0x0C
+OP_METADATA_INDEX, OP_SUMMARY_OFFSET, OP_DATA_END = 0x0D, 0x0E, 0x0F
+QUEUE_DEPTH = 2
+"""Jobs (finished chunks, `McapWriter.call` jobs) waiting for the writing thread; a producer faster than
+the thread waits beyond this."""
+MESSAGE_HEADER = struct.Struct("<BQHIQQ")
+"""opcode, record length, channel id, sequence, log time, publish time (then the data)."""
+
+
+def pack_str(text: str) -> bytes:
+    raw = text.encode()
+    return struct.pack("<I", len(raw)) + raw
+
+
+def pack_map(values: Mapping[str, str]) -> bytes:
+    body = b"".join(pack_str(k) + pack_str(v) for k, v in values.items())
+    return struct.pack("<I", len(body)) + body
+
+
+def record(opcode: int, body: bytes) -> bytes:
+    return struct.pack("<BQ", opcode, len(body)) + body
+
+
+def _batch_dtype(length: int) -> np.dtype:
+    """Message records with ``length`` bytes of data, packed, as one numpy record type."""
+    return np.dtype({"names": ["op", "len", "ch", "seq", "log", "pub"],
+                     "formats": ["u1", "<u8", "<u2", "<u4", "<u8", "<u8"],
+                     "offsets": [0, 1, 9, 11, 15, 23], "itemsize": 31 + length})
+
+
+class _Chunk:
+    """A chunk being filled: a reusable byte buffer, its message index and time range."""
+
+    def __init__(self, capacity: int):
+        self.buf = np.empty(capacity, dtype=np.uint8)
+        self.reset()
+
+    def reset(self) -> None:
+        self.pos = 0
+        self.index: dict[int, list[np.ndarray]] = {}
+        self.t_min: int | None = None
+        self.t_max = 0
+        self.born: float | None = None
+        self.messages = 0
+
+    def put(self, data: bytes) -> None:
+        self.buf[self.pos:self.pos + len(data)] = np.frombuffer(data, dtype=np.uint8)
+        self.pos += len(data)
+
+    def room(self) -> int:
+        return len(self.buf) - self.pos
+
+    def timed(self, channel_id: int, times: np.ndarray, offsets: np.ndarray) -> None:
+        self.index.setdefault(channel_id, []).append(np.stack([times, offsets], axis=1))
+        lo, hi = int(times.min()), int(times.max())
+        self.t_min = lo if self.t_min is None else min(self.t_min, lo)
+        self.t_max = max(self.t_max, hi)
+        self.messages += len(times)
+        if self.born is None:
+            self.born = time.monotonic()
+
+
+class McapWriter:
+    """Writes one MCAP file. One thread adds records (the world's stepping thread), directly or in jobs
+    handed to the writer's own thread (`call`); the writer's thread compresses and writes chunks."""
+
+    def __init__(self, path: str | os.PathLike[str], *, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
+                 level: int = -1, profile: str = "", library: str = "dynabrain"):
+        self.path = os.fspath(path)
+        try:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        except OSError as exc:
+            raise DynabrainError(f"cannot write the log {self.path}: {exc.strerror}") from None
+        self.chunk_bytes, self.flush_s = chunk_bytes, flush_s
+        self._zstd = zstandard.ZstdCompressor(level=level)
+        self._pos = 0
+        self._schemas: dict[int, bytes] = {}
+        self._channels: dict[int, bytes] = {}
+        self._counts: dict[int, int] = {}
+        self._chunk_indexes: list[bytes] = []
+        self._metadata_indexes: list[bytes] = []
+        self._dtypes: dict[int, np.dtype] = {}
+        self.messages = self.chunks = 0
+        self.thread_cpu_s = 0.0
+        """CPU time the writing thread has spent (compressing and writing)."""
+        self._t_min: int | None = None
+        self._t_max = 0
+        self._spare: queue.Queue[_Chunk] = queue.Queue()
+        self._made = 1
+        self._chunk = _Chunk(2 * chunk_bytes)
+        self._error: BaseException | None = None
+        self._jobs: queue.Queue[Callable[[], None] | None] = queue.Queue(maxsize=QUEUE_DEPTH)
+        self._write(MAGIC + record(OP_HEADER, pack_str(profile) + pack_str(library)))
+        self._thread = threading.Thread(target=self._work, name=f"dynabrain-mcap-{os.path.basename(self.path)}",
+                                        daemon=True)
+        self._thread.start()
+
+    def warm_up(self) -> None:
+        """Make every chunk buffer now and touch its memory, and let the compressor allocate its
+        tables: a fresh process then pays for none of it while a run is being written."""
+        while self._made < QUEUE_DEPTH + 2:
+            self._made += 1
+            self._spare.put(_Chunk(2 * self.chunk_bytes))
+        for chunk in [self._chunk, *self._spare.queue]:
+            chunk.buf[chunk.pos:].fill(0)  # (records already in the chunk stay)
+        self._zstd.compress(bytes(self.chunk_bytes))
+
+    def call(self, job: Callable[[], None]) -> None:
+        """Run ``job`` on the writing thread after everything handed to it before. Writer calls made
+        inside it run there too (a chunk it finishes is compressed there). A job that raises stops the
+        writer: the error comes back as a `DynabrainError` from the next call, `call` or `finish`."""
+        self._submit(job)
+
+    # -- registration ---------------------------------------------------------------------------------
+    def add_schema(self, name: str, encoding: str, data: bytes, schema_id: int | None = None) -> int:
+        sid = schema_id if schema_id is not None else len(self._schemas) + 1
+        rec = record(OP_SCHEMA, struct.pack("<H", sid) + pack_str(name) + pack_str(encoding)
+                     + struct.pack("<I", len(data)) + data)
+        self._schemas[sid] = rec
+        self._put(rec)
+        return sid
+
+    def add_channel(self, topic: str, encoding: str, schema_id: int, metadata: Mapping[str, str] | None = None,
+                    channel_id: int | None = None) -> int:
+        cid = channel_id if channel_id is not None else len(self._channels) + 1
+        rec = record(OP_CHANNEL, struct.pack("<HH", cid, schema_id) + pack_str(topic) + pack_str(encoding)
+                     + pack_map(metadata or {}))
+        self._channels[cid] = rec
+        self._counts.setdefault(cid, 0)
+        self._put(rec)
+        return cid
+
+    def add_metadata(self, name: str, values: Mapping[str, str]) -> None:
+        """A metadata record, written to the file at once (outside chunks)."""
+        rec = record(OP_METADATA, pack_str(name) + pack_map(values))
+
+        def job() -> None:
+            self._metadata_indexes.append(record(OP_METADATA_INDEX, struct.pack("<QQ", self._pos, len(rec))
+                                                 + pack_str(name)))
+            self._write(rec)
+
+        self._submit(job)
+
+    # -- messages -------------------------------------------------------------------------------------
+    def add_message(self, channel_id: int, log_time: int, data: bytes, sequence: int = 0) -> None:
+        offset = self._make_room(31 + len(data))
+        self._put(MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, log_time) + data)
+        self._indexed(channel_id, np.array([log_time], dtype=np.uint64), np.array([offset], dtype=np.uint64))
+
+    def add_messages(self, channel_id: int, log_times: np.ndarray, sequences: np.ndarray, data: np.ndarray) -> None:
+        """A batch of messages of one channel, all of the same size: ``data`` is (n, length) uint8."""
+        def copy(out: np.ndarray, part: slice) -> None:
+            out[:] = data[part]
+
+        self.add_encoded(channel_id, log_times, sequences, data.shape[1], copy)
+
+    def add_encoded(self, channel_id: int, log_times: np.ndarray, sequences: np.ndarray, length: int,
+                    fill: Callable[[np.ndarray, slice], None]) -> None:
+        """A batch of ``len(log_times)`` messages of ``length`` bytes, encoded in place: ``fill(out, part)``
+        writes the messages ``part`` of the batch into ``out``, a (k, length) view into the chunk."""
+        n, size = len(log_times), 31 + length
+        times = np.asarray(log_times, dtype=np.uint64)
+        sequences = np.asarray(sequences)
+        dtype = self._dtypes.get(length)
+        if dtype is None:
+            dtype = self._dtypes[length] = _batch_dtype(length)
+        done = 0
+        while done < n:
+            start = self._make_room(size)
+            k = min(n - done, self._chunk.room() // size)
+            region = self._chunk.buf[start:start + k * size]
+            recs = region.view(dtype)
+            recs["op"], recs["len"], recs["ch"] = OP_MESSAGE, 22 + length, channel_id
+            part = slice(done, done + k)
+            recs["seq"], recs["log"], recs["pub"] = sequences[part], times[part], times[part]
+            fill(region.reshape(k, size)[:, 31:], part)
+            self._chunk.pos += k * size
+            self._indexed(channel_id, times[part], start + np.arange(k, dtype=np.uint64) * np.uint64(size))
+            done += k
+
+    def _indexed(self, channel_id: int, times: np.ndarray, offsets: np.ndarray) -> None:
+        self._chunk.timed(channel_id, times, offsets)
+        self._counts[channel_id] = self._counts.get(channel_id, 0) + len(times)
+        self.messages += len(times)
+        chunk = self._chunk
+        if chunk.pos >= self.chunk_bytes or time.monotonic() - chunk.born >= self.flush_s:
+            self.flush()
+
+    def _put(self, data: bytes) -> None:
+        self._make_room(len(data))
+        self._chunk.put(data)
+
+    def _make_room(self, size: int) -> int:
+        """Offset where ``size`` bytes go: in this chunk, or in a fresh one."""
+        if self._chunk.room() < size:
+            self.flush()
+            if self._chunk.room() < size:  # a record larger than a chunk buffer: a larger buffer
+                old = self._chunk
+                self._chunk = _Chunk(old.pos + size + self.chunk_bytes)
+                self._chunk.put(old.buf[:old.pos].tobytes())
+                self._made += 1
+        return self._chunk.pos
+
+    # -- chunks ---------------------------------------------------------------------------------------
+    def flush(self) -> None:
+        """Finish the chunk being filled (if it holds a message); the writing thread compresses and
+        writes it. Records of a chunk without messages (schemas, channels) wait for the next one."""
+        chunk = self._chunk
+        if chunk.messages == 0:
+            return
+        self._submit(lambda: self._write_chunk(chunk))
+        self._chunk = self._next_buffer()
+        self._chunk.reset()
+
+    def _next_buffer(self) -> _Chunk:
+        try:
+            return self._spare.get_nowait()
+        except queue.Empty:
+            if self._made < QUEUE_DEPTH + 2:
+                self._made += 1
+                return _Chunk(2 * self.chunk_bytes)
+        while True:  # every buffer is waiting to be written: wait for one
+            try:
+                return self._spare.get(timeout=0.1)
+            except queue.Empty:
+                self._check()
+
+    def _write_chunk(self, chunk: _Chunk) -> None:
+        size, t_min, t_max, index = chunk.pos, chunk.t_min or 0, chunk.t_max, chunk.index
+        try:
+            raw = memoryview(chunk.buf)[:size]
+            packed = self._zstd.compress(raw)
+            crc = zlib.crc32(raw)
+            del raw
+        finally:
+            self._spare.put(chunk)  # the buffer is free again (also when this failed)
+        body = struct.pack("<QQQI", t_min, t_max, size, crc) + pack_str("zstd") + struct.pack("<Q", len(packed))
+        data = struct.pack("<BQ", OP_CHUNK, len(body) + len(packed)) + body + packed
+        start, at = self._pos, self._pos + len(data)
+        indexes, offsets = [], {}
+        for cid, parts in index.items():
+            entries = np.concatenate(parts)
+            entries = entries[np.argsort(entries[:, 0], kind="stable")]
+            rec = record(OP_MESSAGE_INDEX, struct.pack("<HI", cid, entries.nbytes) + entries.astype("<u8").tobytes())
+            offsets[cid] = at
+            at += len(rec)
+            indexes.append(rec)
+        self._write(data + b"".join(indexes))
+        body = struct.pack("<QQQQ", t_min, t_max, start, len(data))
+        body += struct.pack("<I", 10 * len(offsets)) + b"".join(struct.pack("<HQ", c, o) for c, o in offsets.items())
+        body += struct.pack("<Q", at - start - len(data)) + pack_str("zstd") + struct.pack("<QQ", len(packed), size)
+        self._chunk_indexes.append(record(OP_CHUNK_INDEX, body))
+        self.chunks += 1
+        self._t_min = t_min if self._t_min is None else min(self._t_min, t_min)
+        self._t_max = max(self._t_max, t_max)
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            try:
+                done = os.write(self._fd, view)
+            except OSError as exc:
+                raise DynabrainError(f"writing the log {self.path} failed: {exc.strerror}") from None
+            view = view[done:]
+        self._pos += len(data)
+
+    # -- the writing thread ---------------------------------------------------------------------------
+    def _submit(self, job: Callable[[], None]) -> None:
+        if threading.get_ident() == self._thread.ident:  # inside a job: now, in order
+            job()
+            return
+        self._check()
+        self._jobs.put(job)
+
+    def _work(self) -> None:
+        while True:
+            job = self._jobs.get()
+            t0 = time.thread_time()
+            try:
+                if job is None:
+                    return
+                if self._error is None:
+                    job()
+            except BaseException as exc:
+                self._error = exc
+            finally:
+                self.thread_cpu_s += time.thread_time() - t0
+                self._jobs.task_done()
+
+    def check(self) -> None:
+        """Raise the error that stopped the writing thread, if one did (as a `DynabrainError`)."""
+        self._check()
+
+    def _check(self) -> None:
+        exc = self._error
+        if isinstance(exc, DynabrainError):
+            raise exc
+        if exc is not None:
+            raise DynabrainError(f"writing the log {self.path} failed: {type(exc).__name__}: {exc}") from exc
+
+    # -- the end --------------------------------------------------------------------------------------
+    def finish(self) -> None:
+        """Write the last chunk, the summary (schemas, channels, statistics, indexes) and the footer."""
+        self._jobs.join()  # jobs handed over with `call` may still add messages
+        self._check()
+        self.flush()
+        self._jobs.join()
+        self._check()
+        self._write(record(OP_DATA_END, struct.pack("<I", 0)))  # 0: no data-section CRC (chunks have theirs)
+        start = self._pos
+        groups = [(OP_SCHEMA, list(self._schemas.values())), (OP_CHANNEL, list(self._channels.values())),
+                  (OP_STATISTICS, [self._statistics()]), (OP_CHUNK_INDEX, self._chunk_indexes),
+                  (OP_METADATA_INDEX, self._metadata_indexes)]
+        summary = bytearray()
+        offsets = bytearray()
+        for opcode, recs in groups:
+            if recs:
+                offsets += record(OP_SUMMARY_OFFSET, struct.pack("<BQQ", opcode, start + len(summary),
+                                                                  sum(map(len, recs))))
+                summary += b"".join(recs)
+        offset_start = start + len(summary)
+        summary += offsets
+        head = struct.pack("<BQQQ", OP_FOOTER, 20, start, offset_start)
+        crc = zlib.crc32(head, zlib.crc32(summary))
+        self._write(bytes(summary) + head + struct.pack("<I", crc) + MAGIC)
+        self.close()
+
+    def _statistics(self) -> bytes:
+        counts = b"".join(struct.pack("<HQ", c, n) for c, n in sorted(self._counts.items()))
+        return record(OP_STATISTICS, struct.pack("<QHIIIIQQ", self.messages, len(self._schemas), len(self._channels),
+                                                 0, len(self._metadata_indexes), self.chunks, self._t_min or 0,
+                                                 self._t_max) + struct.pack("<I", len(counts)) + counts)
+
+    def close(self) -> None:
+        """Stop the writing thread and close the file as it is (`finish` writes the summary first)."""
+        if self._fd < 0:
+            return
+        self._jobs.put(None)
+        self._thread.join()
+        os.close(self._fd)
+        self._fd = -1
+
+    @property
+    def bytes_written(self) -> int:
+        return self._pos

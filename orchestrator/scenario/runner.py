@@ -1,0 +1,81 @@
+"""Running a scenario to its end: ticks, expectations at their times, a result to print."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from ..kernel.world import World
+from .expect import Expectation, namespace_for
+from .model import Scenario
+
+
+@dataclass
+class RunResult:
+    scenario: str
+    ticks: int
+    sim_time: float
+    wall_time: float
+    dt_ns: int
+    expectations: list[Expectation] = field(default_factory=list)
+    error: str | None = None
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.sim_time / self.wall_time if self.wall_time > 0 else float("inf")
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None and all(e.passed for e in self.expectations)
+
+
+def run_scenario(scenario: Scenario, world: World | None = None, *,
+                 progress: Callable[[int, int], None] | None = None, realtime: bool | float | None = None,
+                 chunk: int = 50) -> RunResult:
+    """Run ``scenario`` for its duration and check its expectations. The world is closed at the end
+    unless one was passed in."""
+    own = world is None
+    world = world if world is not None else scenario.build()
+    expectations = list(scenario.expectations)
+    total = scenario.duration_ns // world.dt_ns
+    due: dict[int, list[Expectation]] = {}
+    for exp in expectations:
+        for tick in range(exp.start, exp.end + 1):
+            due.setdefault(tick, []).append(exp)
+    stops = sorted(set(due) | set(range(0, total + 1, chunk)) | {total})
+    namespace = namespace_for(world)
+    factor = scenario.model.world.realtime if realtime is None else realtime
+    factor = 1.0 if factor is True else (float(factor) if factor else None)
+    wall0 = time.perf_counter()
+    error = None
+    try:
+        for stop in stops:
+            if stop > world.tick_count:
+                _advance(world, stop - world.tick_count, factor, wall0)
+            for exp in due.get(world.tick_count, ()):
+                if exp.passed is not False:
+                    exp.check(world, namespace)
+            if progress is not None:
+                progress(world.tick_count, total)
+    except Exception as exc:  # a failed tick has been rolled back; report it with the results
+        error = str(exc)
+    wall = time.perf_counter() - wall0
+    for exp in expectations:
+        if exp.passed is None:
+            exp.passed, exp.detail = False, exp.detail or "not reached"
+    result = RunResult(scenario.model.name, world.tick_count, world.time, wall, world.dt_ns, expectations, error)
+    if own:
+        world.close()
+    return result
+
+
+def _advance(world: World, n: int, factor: float | None, wall0: float) -> None:
+    if factor is None:
+        world.tick(n)
+        return
+    for _ in range(n):
+        world.tick()
+        ahead = wall0 + world.time / factor - time.perf_counter()
+        if ahead > 0:
+            time.sleep(ahead)

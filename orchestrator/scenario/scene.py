@@ -1,0 +1,307 @@
+"""The ``scene:`` section of a scenario: primitives (engine-neutral) or a model file.
+
+``- box: {name: aa, size: [0.1, 0.1, 0.1], mass: 50g, pos: [0, 0, 0.6], color: blue}``; shapes are
+plane, box (full edge lengths), sphere ([radius]), capsule and cylinder ([radius, length]).
+``joint:`` is ``free`` (the default for a top-level body), ``fixed``, or ``{hinge: {axis, anchor,
+range, damping}}`` / ``{slide: {...}}`` (a hinge range is in degrees unless a unit says otherwise);
+``parent:`` attaches a body to another.
+``euler: [rx, ry, rz]`` (degrees, applied x then y then z) may replace ``quat``.
+``- grid: {of: {box: {...}}, count: [nx, ny], spacing: [dx, dy]}`` repeats a shape on a grid; the
+copies are named ``<name>_<i>_<j>`` and placed at ``pos + (i*dx, j*dy, 0)``.
+``- cable: {name: rope, from: [0, 0, 2], to: [0, 0, 0.5], radius: 5mm, mass: 100g, segments: 8,
+stiffness: 2e4, bending: 1e-3, damping: 1ms, attach: [world, seat]}`` is a flexible rope (only some
+cores simulate it; see `dynabrain.orchestrator.core.CableSpec`): ``stiffness`` is EA in N,
+``bending`` EI in N*m^2, ``damping`` a time constant, ``attach`` what holds its start and end
+(null: free, ``world``: pinned where it is, or a body's name).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ..kernel.core import COLORS, FLEX_SHAPES, JOINT_KINDS, SHAPES, BodySpec, CableSpec, JointSpec, SceneSpec
+from ..kernel.errors import DynabrainError, Problem, UnitError
+from ..kernel.suggest import did_you_mean
+from ..kernel.units import parse_quantity
+from ..kernel.yamlsrc import Path, YamlSource
+
+_BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction")
+_JOINT_KEYS = ("name", "axis", "anchor", "range", "damping")
+_SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,)}
+_CABLE_KEYS = ("name", "from", "to", "radius", "mass", "segments", "stiffness", "bending", "damping", "attach",
+               "color", "friction")
+_ALL_SHAPES = (*SHAPES, *FLEX_SHAPES)
+
+
+def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple[SceneSpec, list[Problem]]:
+    """A SceneSpec and the problems found (every one, with its line)."""
+    problems: list[Problem] = []
+    if isinstance(data, dict):
+        unknown = [k for k in data if k != "model"]
+        for key in unknown:
+            problems.append(src.problem(("scene", key), f"unknown key {key!r} in scene; a scene is a list of "
+                                        "primitives or {model: file}" + did_you_mean(key, ["model"])))
+        model = data.get("model")
+        if not isinstance(model, str):
+            problems.append(src.problem(("scene",), "scene.model must be a file path"))
+            return SceneSpec(), problems
+        path = model if os.path.isabs(model) else os.path.join(base_dir, model)
+        if not os.path.exists(path):
+            problems.append(src.problem(("scene", "model"), f"model file {model!r} not found (looked in {base_dir})"))
+        return SceneSpec(model=path), problems
+    bodies: list[BodySpec] = []
+    names: set[str] = set()
+    for shape, fields, path in _items(data or [], src, problems):
+        if shape not in _ALL_SHAPES:
+            problems.append(src.problem(path, f"unknown shape {shape!r}" + did_you_mean(shape, _ALL_SHAPES)
+                                        + f"; shapes: {', '.join(_ALL_SHAPES)}"))
+            continue
+        try:
+            parse = _cable if shape in FLEX_SHAPES else _body
+            body = parse(shape, fields or {}, src, (*path, shape), problems)
+        except (DynabrainError, ValueError, TypeError) as exc:
+            problems.append(src.problem((*path, shape), str(exc)))
+            continue
+        if body is None:
+            continue
+        if body.name in names:
+            problems.append(src.problem((*path, shape, "name"), f"body name {body.name!r} is used twice"))
+        names.add(body.name)
+        bodies.append(body)
+    for i, body in enumerate(bodies):
+        if body.parent is not None and body.parent not in names:
+            problems.append(Problem(f"unknown parent {body.parent!r}" + did_you_mean(body.parent, names),
+                                    src.file, body.line, f"scene[{i}].parent"))
+        for end in body.cable.attach if body.cable is not None else ():
+            if end not in (None, "world") and (end not in names or end == body.name):
+                problems.append(Problem(f"cable {body.name!r} is attached to {end!r}, which is not another body"
+                                        + did_you_mean(end, names) + "; use a body's name, world or null",
+                                        src.file, body.line, f"scene[{i}].attach"))
+    return SceneSpec(bodies=tuple(bodies)), problems
+
+
+def _items(data: list[Any], src: YamlSource, problems: list[Problem]):
+    """(shape, fields, path) of each scene item, with grids expanded."""
+    for i, item in enumerate(data):
+        path: Path = ("scene", i)
+        if not isinstance(item, dict) or len(item) != 1:
+            problems.append(src.problem(path, "each scene item is one shape: `- box: {...}`"))
+            continue
+        shape, fields = next(iter(item.items()))
+        if shape != "grid":
+            yield shape, fields, path
+            continue
+        try:
+            yield from _grid(fields, path)
+        except (DynabrainError, ValueError, TypeError, KeyError) as exc:
+            problems.append(src.problem((*path, "grid"), f"a grid is {{of: {{shape: {{...}}}}, count: [nx, ny], "
+                                        f"spacing: [dx, dy]}}: {exc}"))
+
+
+def _grid(fields: dict[str, Any], path: Path):
+    (shape, base), = fields["of"].items()
+    nx, ny = (int(c) for c in fields["count"])
+    dx, dy = _vector(fields["spacing"], 2, "length")
+    x0, y0, z0 = _vector(base.get("pos", [0, 0, 0]), 3, "length")
+    for ix in range(nx):
+        for iy in range(ny):
+            copy = dict(base, name=f"{base.get('name', shape)}_{ix}_{iy}", pos=[x0 + ix * dx, y0 + iy * dy, z0])
+            yield shape, copy, (*path, "grid", "of", shape)
+
+
+def _field_reader(shape: str, f: dict[str, Any], keys: Sequence[str], src: YamlSource, path: Path,
+                  problems: list[Problem], *, required: bool):
+    """Check ``f``'s keys against ``keys`` and return ``field(key, parse, default)``, which parses one
+    field, records a problem (and gives ``default``) when it is bad, and, with ``required``, when a
+    field without a default is missing."""
+    if not isinstance(f, dict):
+        raise DynabrainError(f"{shape} needs a mapping of fields ({', '.join(keys)})")
+    for key in f:
+        if key not in keys:
+            problems.append(src.problem((*path, key), f"unknown key {key!r}" + did_you_mean(key, keys)
+                                        + f"; valid keys: {', '.join(keys)}"))
+
+    def field(key: str, parse, default=None):
+        if key not in f:
+            if required and default is None:
+                problems.append(src.problem(path, f"a {shape} needs {key!r}"))
+            return default
+        try:
+            return parse(f[key])
+        except (DynabrainError, ValueError, TypeError) as exc:
+            problems.append(src.problem((*path, key), str(exc)))
+            return default
+
+    return field
+
+
+def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
+    before = len(problems)
+    field = _field_reader(shape, f, _BODY_KEYS, src, path, problems, required=False)
+
+    name = f.get("name", "floor" if shape == "plane" else None)
+    if not isinstance(name, str) or not name:
+        problems.append(src.problem(path, f"a {shape} needs a name"))
+        name = "?"
+    size = field("size", lambda v: _vector(v, None, "length"), ())
+    if len(size) not in _SIZE_LEN[shape]:
+        problems.append(src.problem((*path, "size"), f"a {shape} has size of length "
+                                    f"{' or '.join(map(str, _SIZE_LEN[shape]))}, got {len(size)}"))
+    if any(s <= 0 for s in size):
+        problems.append(src.problem((*path, "size"), "sizes must be positive"))
+    quat = field("quat", lambda v: _unit_quat(_vector(v, 4)), (1.0, 0.0, 0.0, 0.0))
+    if "euler" in f:
+        quat = field("euler", lambda v: _euler(_vector(v, 3, "angle", default_unit="deg")), quat)
+    joint = field("joint", _joint)
+    if shape == "plane" and joint not in (None,) and joint.kind != "fixed":
+        problems.append(src.problem((*path, "joint"), "a plane is static; it takes no joint"))
+    body = BodySpec(
+        name=name, shape=shape, size=tuple(size),
+        pos=field("pos", lambda v: _vector(v, 3, "length"), (0.0, 0.0, 0.0)),
+        quat=quat, mass=field("mass", lambda v: _positive(parse_quantity(v, "mass"))),
+        color=field("color", _color, COLORS["grey"]), joint=joint, parent=f.get("parent"),
+        friction=field("friction", lambda v: _positive(float(v))), line=src.line(path),
+    )
+    return body if len(problems) == before else None
+
+
+def _cable(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
+    """A ``cable`` item: a flexible rope from ``from`` to ``to`` (see `CableSpec`)."""
+    before = len(problems)
+    field = _field_reader(shape, f, _CABLE_KEYS, src, path, problems, required=True)
+
+    name = f.get("name")
+    if not isinstance(name, str) or not name:
+        problems.append(src.problem(path, f"a {shape} needs a name"))
+    start = field("from", lambda v: _vector(v, 3, "length"))
+    end = field("to", lambda v: _vector(v, 3, "length"))
+    if start is not None and end is not None and start == end:
+        problems.append(src.problem((*path, "to"), "a cable's ends must differ"))
+    cable = CableSpec(
+        end=end or (0.0, 0.0, 0.0),
+        segments=field("segments", _segments, 8),
+        axial_stiffness=field("stiffness", lambda v: _positive(parse_quantity(v, "force")), 1.0e4),
+        bending_stiffness=field("bending", lambda v: _positive(parse_quantity(v)), 1.0e-3),
+        damping=field("damping", lambda v: _not_negative(parse_quantity(v, "time")), 0.0),
+        attach=field("attach", _attach, (None, None)),
+    )
+    body = BodySpec(
+        name=name if isinstance(name, str) else "?", shape=shape,
+        size=(field("radius", lambda v: _positive(parse_quantity(v, "length")), 0.005),),
+        pos=start or (0.0, 0.0, 0.0), mass=field("mass", lambda v: _positive(parse_quantity(v, "mass")), 0.0) or None,
+        color=field("color", _color, COLORS["brown"]), friction=field("friction", lambda v: _positive(float(v)), 0.0)
+        or None, line=src.line(path), cable=cable,
+    )
+    return body if len(problems) == before else None
+
+
+def _segments(value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 500:
+        raise UnitError(f"segments is a whole number from 1 to 500, got {value!r}")
+    return value
+
+
+def _attach(value: Any) -> tuple[str | None, str | None]:
+    if not isinstance(value, list) or len(value) != 2 or not all(v is None or isinstance(v, str) for v in value):
+        raise UnitError("attach is [start, end], each a body's name, world or null")
+    return (value[0], value[1])
+
+
+def _not_negative(x: float) -> float:
+    if x < 0:
+        raise UnitError(f"must not be negative, got {x}")
+    return x
+
+
+def _positive(x: float) -> float:
+    if not x > 0:
+        raise UnitError(f"must be positive, got {x}")
+    return x
+
+
+def _vector(value: Any, n: int | None, dimension: str | None = None, default_unit: str | None = None) -> tuple:
+    if not isinstance(value, (list, tuple)):
+        raise UnitError(f"expected a list of {n or 'some'} numbers, got {value!r}")
+    if n is not None and len(value) != n:
+        raise UnitError(f"expected {n} numbers, got {len(value)}")
+    out = []
+    for v in value:
+        if default_unit and not isinstance(v, str):
+            v = f"{v}{default_unit}"
+        out.append(parse_quantity(v, dimension))
+    return tuple(out)
+
+
+def _unit_quat(q: tuple) -> tuple:
+    norm = math.sqrt(sum(x * x for x in q))
+    if norm == 0:
+        raise UnitError("a quaternion cannot be zero")
+    return tuple(x / norm for x in q)
+
+
+def _euler(angles: tuple) -> tuple:
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for axis, angle in enumerate(angles):
+        r = np.zeros(4)
+        r[0] = math.cos(angle / 2)
+        r[1 + axis] = math.sin(angle / 2)
+        q = _qmul(r, q)
+    return tuple(float(x) for x in q)
+
+
+def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def _color(value: Any) -> tuple:
+    if isinstance(value, str):
+        if value not in COLORS:
+            raise UnitError(f"unknown colour {value!r}" + did_you_mean(value, COLORS)
+                            + f"; colours: {', '.join(COLORS)}")
+        return COLORS[value]
+    rgba = _vector(value, None)
+    if len(rgba) not in (3, 4) or not all(0 <= c <= 1 for c in rgba):
+        raise UnitError("a colour is a name or [r, g, b(, a)] in 0..1")
+    return rgba if len(rgba) == 4 else (*rgba, 1.0)
+
+
+def _joint(value: Any) -> JointSpec:
+    if isinstance(value, str):
+        if value not in JOINT_KINDS:
+            raise UnitError(f"unknown joint {value!r}" + did_you_mean(value, JOINT_KINDS)
+                            + f"; joints: {', '.join(JOINT_KINDS)}")
+        return JointSpec(kind=value)
+    if not isinstance(value, dict) or len(value) != 1:
+        raise UnitError("a joint is free, fixed, or {hinge: {...}} / {slide: {...}}")
+    kind, fields = next(iter(value.items()))
+    if kind not in ("hinge", "slide"):
+        raise UnitError(f"unknown joint kind {kind!r}" + did_you_mean(kind, ("hinge", "slide")))
+    fields = fields or {}
+    for key in fields:
+        if key not in _JOINT_KEYS:
+            raise UnitError(f"unknown joint key {key!r}" + did_you_mean(key, _JOINT_KEYS))
+    rng = fields.get("range")
+    dim = "angle" if kind == "hinge" else "length"
+    return JointSpec(
+        kind=kind, name=fields.get("name"),
+        axis=_axis(fields.get("axis", [0, 0, 1])),
+        anchor=_vector(fields.get("anchor", [0, 0, 0]), 3, "length"),
+        range=None if rng is None else _vector(rng, 2, dim, default_unit="deg" if kind == "hinge" else None),
+        damping=float(fields.get("damping", 0.0)),
+    )
+
+
+def _axis(value: Any) -> tuple:
+    v = np.array(_vector(value, 3))
+    n = np.linalg.norm(v)
+    if n == 0:
+        raise UnitError("a joint axis cannot be zero")
+    return tuple(float(x) for x in v / n)
