@@ -5,6 +5,10 @@
 starts ``python -m MODULE FD [ARGS...]`` with this interpreter; FD is the child's end of the pair,
 which it wraps as ``multiprocessing.connection.Connection(int(sys.argv[1]))``. Nothing listens on a
 port: the pair is private to the two processes.
+
+What goes through the pair is pickled: give each message a named type (a `typing.NamedTuple` costs no
+more than a tuple) defined in a module other than MODULE, which is ``__main__`` in the child, where a
+class of its own would not be the parent's (the log writer's are in ``logs.messages``).
 """
 
 from __future__ import annotations

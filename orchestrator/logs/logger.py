@@ -49,6 +49,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
 from ..kernel.errors import DynabrainError
 from ..kernel.observers import Observer, WorldEvent, WorldView
+from .messages import Event, Layout, Metadata, Release, Span
 from .meta import run_metadata
 from .scene import SceneDrawing
 from .schema import METADATA_NAME, BusCodec, FieldNumbers, event_bytes, foxglove_descriptor, pose_columns
@@ -152,7 +153,7 @@ class McapLogger(Observer):
             try:
                 settings = {"decimate": self.decimate, "scene_every": self.scene_every, "window": self.window,
                             "batch": self.batch, "writer": self.writer, **self._writer_args}
-                self._sink.call("metadata", METADATA_NAME, run_metadata(world, scenario, settings))
+                self._sink.call(Metadata(METADATA_NAME, run_metadata(world, scenario, settings)))
                 self._refresh_layout(view)
                 self._push(view, view.bus())
             except BaseException:
@@ -339,7 +340,7 @@ class McapLogger(Observer):
             codec = BusCodec.from_view(slots, size, self._numbers, len(self._codecs) + 1)
             self._codecs[signature] = codec
             cols, missing = self._pose_index[codec.key] = self._pose_plan(view, codec)
-            self._sink.call("layout", codec.key, codec.metadata(), cols, missing)
+            self._sink.call(Layout(codec.key, codec.metadata(), cols, missing))
             detail: dict[str, Any] = {"layout": codec.key, "signals": len(codec.slots), "values": size}
             if self._codec is not None:
                 detail["added"] = sorted(set(codec.by_name) - set(self._codec.by_name))
@@ -357,7 +358,7 @@ class McapLogger(Observer):
     def _drain(self, n: int) -> None:
         """Hand the ``n`` oldest waiting rows to the writer, in one call."""
         self._drained_at = time.monotonic()
-        parts = []
+        parts: list[Span | Release] = []
         while n > 0 and self._pending:
             block = self._pending[0]
             a = block.sent
@@ -365,7 +366,7 @@ class McapLogger(Observer):
             if b > a:
                 for lo, hi, discarded in ((a, min(b, block.cut), False), (max(a, block.cut), b, True)):
                     if hi > lo:
-                        parts.append((block, lo, hi, discarded))
+                        parts.append(Span(block, lo, hi, discarded))
                         if not discarded:
                             self._written_max = max(self._written_max, block.first + hi - 1)
                 block.sent = b
@@ -374,7 +375,7 @@ class McapLogger(Observer):
             if block.sent < block.n or not block.sealed:
                 break
             self._pending.popleft()
-            parts.append((block, 0, 0, None))  # its last rows are written: back to its pool
+            parts.append(Release(block))  # its last rows are written: back to its pool
         if parts:
             self._sink.rows(parts)
 
@@ -382,4 +383,4 @@ class McapLogger(Observer):
         self._seq += 1
         body = {"seq": self._seq, "tick": tick, "time": tick * self._dt / 1e9, "epoch": self._epoch, "kind": kind,
                 "source": source, "detail": detail}
-        self._sink.call("event", tick * self._dt, event_bytes(body), self._epoch)
+        self._sink.call(Event(tick * self._dt, event_bytes(body), self._epoch))

@@ -8,15 +8,15 @@ into ``/bus``, ``/tf`` and ``/scene`` messages, writes events and metadata, and 
 `ProcessSink` (the default) runs the sink in a child process (``python -m
 dynabrain.orchestrator.logs.sink``; it starts in about 0.15 s, and `attach` waits for it). Rows
 travel through shared memory (each block of rows is a file in ``/dev/shm``, or in the temporary
-folder when that is missing or full, mapped by both processes), calls through a pipe; the child
-acknowledges each batch so the block can take rows again. Encoding and compression then cost the
-simulation only the row copies: on a thread of the simulation's process they hold its interpreter
-lock part of the time, and logging the humanoid cost about 45% of its step that way
-(``bench/logging_cost.py``). If the simulation's process dies, the child sees the pipe close and
-finishes the file (summary and footer): nothing handed over is lost. A shared file's name is removed
-as soon as the child has mapped it (files of processes killed before that are removed by the next
-log started). `ThreadSink` runs the same sink on the
-writer's thread in this process (``McapLogger(writer="thread")``).
+folder when that is missing or full, mapped by both processes), calls through a pipe (each message a
+named type of `logs.messages`); the child acknowledges each batch so the block can take rows again.
+Encoding and compression then cost the simulation only the row copies: on a thread of the
+simulation's process they hold its interpreter lock part of the time, and logging the humanoid cost
+about 45% of its step that way (``bench/logging_cost.py``). If the simulation's process dies, the
+child sees the pipe close and finishes the file (summary and footer): nothing handed over is lost. A
+shared file's name is removed as soon as the child has mapped it (files of processes killed before
+that are removed by the next log started). `ThreadSink` runs the same sink on the writer's thread in
+this process (``McapLogger(writer="thread")``).
 """
 
 from __future__ import annotations
@@ -39,6 +39,24 @@ import numpy as np
 
 from ..kernel.errors import DynabrainError
 from ..kernel.workers import spawn_worker
+from .messages import (
+    Abort,
+    Call,
+    Done,
+    Event,
+    Failed,
+    Finish,
+    Finished,
+    Layout,
+    Metadata,
+    Open,
+    Ready,
+    Release,
+    Rows,
+    RowsPart,
+    Shared,
+    Span,
+)
 from .schema import DISCARDED, EVENT_SCHEMA, TOPIC_BUS, TOPIC_EVENTS, TOPIC_SCENE, TOPIC_TF, BusCodec, PoseCodec
 from .write import McapWriter
 
@@ -113,6 +131,13 @@ class LogSink:
             w.add_message(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), (first + row) * dt,
                           scene, epoch)
 
+    def apply(self, call: Call) -> None:
+        """Make one of the logger's calls: the method of the message's name, with its fields."""
+        method = _CALLS.get(type(call))
+        if method is None:
+            raise DynabrainError(f"the log writer got {type(call).__name__}, which is no writer call")
+        method(self, *call)
+
     def finish(self) -> dict[str, float]:
         """Write the summary and footer; what was written."""
         w = self.writer
@@ -151,6 +176,10 @@ class LogSink:
             return self.writer.add_channel(topic, "protobuf", sid)
 
         return self._channel(topic, make)
+
+
+_CALLS: dict[type, Callable[..., None]] = {Metadata: LogSink.metadata, Layout: LogSink.layout, Event: LogSink.event}
+"""Each writer call's method: its message's fields are the method's arguments, in order."""
 
 
 # -- shared rows ------------------------------------------------------------------------------------------
@@ -198,8 +227,9 @@ def _reserve(folder: str, size: int) -> tuple[mmap.mmap, str]:
         os.close(fd)
 
 
-def _mapped(path: str, shape: tuple[int, ...], maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> np.ndarray:
+def _mapped(shared: Shared, maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> np.ndarray:
     """The child's view of a shared array (mapped once per path)."""
+    path, shape = shared
     hit = maps.get(path)
     if hit is None:
         with open(path, "r+b") as fh:
@@ -259,23 +289,25 @@ class ThreadSink:
         """An array for rows (the writer's thread reads it as it is)."""
         return np.empty(shape), None
 
-    def call(self, name: str, *args: Any) -> None:
-        method = getattr(self._sink, name)
-        self._writer.call(lambda: method(*args))
+    def call(self, call: Call) -> None:
+        sink = self._sink
+        self._writer.call(lambda: sink.apply(call))
 
-    def rows(self, parts: list[tuple[Any, int, int, bool | None]]) -> None:
-        """Write ``parts`` (block, lo, hi, discarded), in order; a part with ``discarded`` None hands its
-        block back to its pool once everything before it is written."""
+    def rows(self, parts: list[Span | Release]) -> None:
+        """Write the spans, in order; a `Release` hands its block back to its pool once everything
+        before it is written."""
         sink = self._sink
 
         def job() -> None:
-            for block, lo, hi, discarded in parts:
-                if discarded is None:
+            for part in parts:
+                block = part.block
+                if type(part) is Release:
                     block.pool.append(block)
-                else:
-                    sink.rows(block.codec.key, block.rows[lo:hi], None if block.extra is None else block.extra[lo:hi],
-                              block.first + lo, block.epoch, discarded,
-                              [(r - lo, s) for r, s in block.scenes if lo <= r < hi])
+                    continue
+                lo, hi = part.lo, part.hi
+                sink.rows(block.codec.key, block.rows[lo:hi], None if block.extra is None else block.extra[lo:hi],
+                          block.first + lo, block.epoch, part.discarded,
+                          [(r - lo, s) for r, s in block.scenes if lo <= r < hi])
 
         self._writer.call(job)
 
@@ -325,11 +357,11 @@ class ProcessSink:
         self._error: str | None = None
         self._stats: dict[str, float] = {}
         try:
-            self._send(("open", path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
-                        dict(descriptors)))
+            self._send(Open(path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
+                            dict(descriptors)))
             reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
-            if reply[0] != "ready":
-                raise DynabrainError(reply[1])
+            if type(reply) is not Ready:
+                raise DynabrainError(_reason(reply))
         except BaseException:
             self._end()
             raise
@@ -340,20 +372,23 @@ class ProcessSink:
         self._shared.append(rows)
         return rows.array, rows
 
-    def call(self, name: str, *args: Any) -> None:
-        self._send((name, *args))
+    def call(self, call: Call) -> None:
+        self._send(call)
 
-    def rows(self, parts: list[tuple[Any, int, int, bool | None]]) -> None:
+    def rows(self, parts: list[Span | Release]) -> None:
         batch, freed = [], []
-        for block, lo, hi, discarded in parts:
-            if discarded is None:
+        for part in parts:
+            block = part.block
+            if type(part) is Release:
                 freed.append(block)
                 continue
-            extra = None if block.extra is None else (block.shared_extra.path, block.extra.shape)
-            batch.append((block.codec.key, (block.shared_rows.path, block.rows.shape), extra, lo, hi,
-                          block.first, block.epoch, discarded, [(r - lo, s) for r, s in block.scenes if lo <= r < hi]))
+            lo, hi = part.lo, part.hi
+            extra = None if block.extra is None else Shared(block.shared_extra.path, block.extra.shape)
+            batch.append(RowsPart(block.codec.key, Shared(block.shared_rows.path, block.rows.shape), extra, lo, hi,
+                                  block.first, block.epoch, part.discarded,
+                                  [(r - lo, s) for r, s in block.scenes if lo <= r < hi]))
         if batch:
-            self._send(("rows", batch))
+            self._send(Rows(batch))
         if freed:
             self._releases.append((self._seq, freed))
         self.poll()
@@ -381,18 +416,18 @@ class ProcessSink:
 
     def finish(self) -> dict[str, float]:
         try:
-            self._send(("finish",))
+            self._send(Finish())
             reply = self._wait(FINISH_TIMEOUT_S, "finish")
-            if reply[0] != "finished":
-                raise DynabrainError(reply[1])
-            self._stats = reply[1]
+            if type(reply) is not Finished:
+                raise DynabrainError(_reason(reply))
+            self._stats = reply.stats
         finally:
             self._end(wait=False)  # the file is complete: no need to wait for the process to exit
         return self._stats
 
     def abort(self) -> None:
         with contextlib.suppress(Exception):
-            self._send(("abort",))
+            self._send(Abort())
         self._end()
 
     @property
@@ -400,24 +435,24 @@ class ProcessSink:
         return self._stats or NOTHING_WRITTEN
 
     # -- plumbing ---------------------------------------------------------------------------------------
-    def _send(self, message: tuple) -> None:
+    def _send(self, message: Open | Call | Rows | Finish | Abort) -> None:
         self._check()
         try:
             self._conn.send(message)
         except (OSError, ValueError) as exc:
             raise DynabrainError(f"the log writer process for {self.path} is gone ({self._exit()}): {exc}") from None
-        if message[0] == "rows":
+        if type(message) is Rows:
             self._seq += 1
 
-    def _take(self, message: tuple) -> None:
-        if message[0] == "done":
-            while self._releases and self._releases[0][0] <= message[1]:
+    def _take(self, message: Done | Failed | Any) -> None:
+        if type(message) is Done:
+            while self._releases and self._releases[0][0] <= message.batches:
                 for block in self._releases.popleft()[1]:
                     block.pool.append(block)
-        elif message[0] == "error":
-            self._error = message[1]
+        else:
+            self._error = _reason(message)
 
-    def _wait(self, timeout: float, what: str) -> tuple:
+    def _wait(self, timeout: float, what: str) -> Ready | Finished | Failed | Any:
         """The child's next answer that is not an acknowledgement."""
         deadline = time.monotonic() + timeout
         while True:
@@ -431,8 +466,8 @@ class ProcessSink:
             try:
                 message = self._conn.recv()
             except (OSError, EOFError):
-                return ("error", f"the log writer process for {self.path} ended ({self._exit()})")
-            if message[0] == "done":
+                return Failed(f"the log writer process for {self.path} ended ({self._exit()})")
+            if type(message) is Done:
                 self._take(message)
                 continue
             return message
@@ -469,18 +504,18 @@ def _serve(conn: Connection) -> None:
     process is gone (its end of the pipe closed, maybe in the middle of a message, or an answer to it
     cannot be sent), finish the file with what arrived."""
     try:
-        _op, path, writer_args, dt_ns, decimate, bodies, descriptors = conn.recv()
-        sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
+        opened: Open = conn.recv()
+        sink = LogSink(*opened)
         sink.writer.warm_up()
     except EOFError:
         return
     except BaseException as exc:  # reported to the parent, which raises it
-        _tell(conn, ("error", _message(exc)))
+        _tell(conn, Failed(_message(exc)))
         return
     maps: dict[str, tuple[mmap.mmap, np.ndarray]] = {}
     try:
-        if _tell(conn, ("ready",)):
-            _take_calls(conn, sink, path, maps)
+        if _tell(conn, Ready()):
+            _take_calls(conn, sink, opened.path, maps)
     finally:
         for mm, _array in maps.values():
             with contextlib.suppress(Exception):
@@ -495,47 +530,53 @@ def _take_calls(conn: Connection, sink: LogSink, path: str, maps: dict[str, tupl
             message = conn.recv()
         except Exception:  # the simulation's process is gone
             break
-        op = message[0]
-        if op == "finish":
+        kind = type(message)
+        if kind is Finish:
             try:
                 stats = sink.finish()
                 stats["writer_cpu_s"] = time.process_time() - cpu0
-                _tell(conn, ("finished", stats))
+                _tell(conn, Finished(stats))
             except BaseException as exc:
-                _tell(conn, ("error", _message(exc)))
+                _tell(conn, Failed(_message(exc)))
             return
-        if op == "abort":
+        if kind is Abort:
             with contextlib.suppress(BaseException):
                 sink.writer.close()
             return
-        answer = None
+        answer: Done | Failed | None = None
         try:
-            if op == "rows":
+            if kind is Rows:
                 done += 1
                 if not failed:
-                    for key, (rows_path, shape), extra, lo, hi, first, epoch, discarded, scenes in message[1]:
-                        rows = _mapped(rows_path, shape, maps)[lo:hi]
-                        more = None if extra is None else _mapped(extra[0], extra[1], maps)[lo:hi]
-                        sink.rows(key, rows, more, first + lo, epoch, discarded, scenes)
-                answer = ("done", done)
+                    for part in message.parts:
+                        lo, hi, extra = part.lo, part.hi, part.extra
+                        rows = _mapped(part.rows, maps)[lo:hi]
+                        more = None if extra is None else _mapped(extra, maps)[lo:hi]
+                        sink.rows(part.key, rows, more, part.first + lo, part.epoch, part.discarded, part.scenes)
+                answer = Done(done)
             elif not failed:
-                getattr(sink, op)(*message[1:])
+                sink.apply(message)
         except BaseException as exc:  # the parent raises it at its next call
             failed = True
-            answer = ("error", f"writing the log {path} failed: {_message(exc)}")
+            answer = Failed(f"writing the log {path} failed: {_message(exc)}")
         if answer is not None and not gone:
             gone = not _tell(conn, answer)
     with contextlib.suppress(BaseException):  # keep what it handed over
         sink.finish()
 
 
-def _tell(conn: Connection, message: tuple) -> bool:
+def _tell(conn: Connection, message: Ready | Done | Failed | Finished) -> bool:
     """Send to the simulation's process; False when it is gone."""
     try:
         conn.send(message)
     except OSError:
         return False
     return True
+
+
+def _reason(reply: Any) -> str:
+    """Why the child did not answer as asked (`Failed`, or a message it should not have sent)."""
+    return reply.reason if type(reply) is Failed else f"the log writer process answered {reply!r}"
 
 
 def _message(exc: BaseException) -> str:
