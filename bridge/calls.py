@@ -3,7 +3,9 @@ frame), snapshots by handle, brain inputs held until the next step boundary, and
 
 `WorldService.call(name, args)` runs a validated call and returns its result: plain JSON values, or
 ``bytes`` (a state frame) for ``tick`` / ``read`` with a view. A call either completes or raises and
-changes nothing (the World's own guarantee; a failed tick is rolled back by the World).
+changes nothing (the World's own guarantee; a failed tick is rolled back by the World). The calls it
+answers are the world's calls of `protocol.TABLE`, one ``do_<call>`` method each; the server answers
+the others (holds, forks, the loop, robots, its status).
 """
 
 from __future__ import annotations
@@ -119,7 +121,7 @@ class WorldService:
         self.input_errors: list[str] = []
         self.on_input_error: Callable[[str], None] | None = None
         self.rigs: dict[str, Rig] = {}
-        self._handlers = {name[3:]: getattr(self, name) for name in dir(self) if name.startswith("do_")}
+        self._handlers = p.handlers(self, server=False)
         if stream:
             self._views[STREAM_VIEW] = self._resolve(View(STREAM_VIEW, tuple(stream)))
 
@@ -127,7 +129,8 @@ class WorldService:
     def call(self, name: str, args: Any) -> Any:
         handler = self._handlers.get(name)
         if handler is None:
-            raise DynabrainError(f"{name} is not available on world {self.world.name!r}")
+            why = "the bridge server answers it" if name in p.TABLE else "no such call"
+            raise DynabrainError(f"{name} is not a call of world {self.world.name!r} ({why})")
         return handler(args)
 
     # -- stepping -------------------------------------------------------------------------------------------
@@ -379,9 +382,6 @@ class WorldService:
         out["robots"] = {r.robot: {"servo": r.servo, "input": r.signal, "joints": list(r.joints)}
                          for r in self.rigs.values()}
         return out
-
-    def do_status(self, a: p.NoArgs) -> dict[str, Any]:
-        return self.status()
 
 
 def _value(value: Any, name: str) -> Any:

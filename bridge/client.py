@@ -13,6 +13,11 @@ serves that world), `CallTimeoutError` (alive but slow), `WorldRefusedError` and
 said no, and why). Every call carries the brain's id and the server instance it talks to, so a
 restarted server refuses the call (`WorldRestartedError`) instead of running it on a world the brain does
 not know.
+
+Every method goes through `BrainClient.call`, which checks the command against the protocol's table of
+calls (`protocol.TABLE`: the call's name and its arguments' model, the same check the server makes)
+before sending it: a call the server would refuse as a bad request raises `BadRequestError` at once,
+and nothing is sent.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ import zenoh
 
 from . import frames
 from . import protocol as p
-from .errors import ERRORS, BridgeError, CallTimeoutError, NoWorldError, WorldRefusedError
+from .errors import ERRORS, BadRequestError, BridgeError, CallTimeoutError, NoWorldError, WorldRefusedError
 from .zenoh_io import DEFAULT_ENDPOINT, JSON, Settings, open_session, payload_bytes
 
 
@@ -120,7 +125,8 @@ class BrainClient:
     # -- the call path --------------------------------------------------------------------------------------
     def call(self, name: str, timeout: float | None = None, /, **args: Any) -> Any:
         """Any call by name (``tick``, ``status``, ...) with its arguments; see `PROTOCOL.md`. ``timeout``
-        (s, positional) replaces the client's default for this call."""
+        (s, positional) replaces the client's default for this call. A name that is no call, or arguments
+        its model refuses, raise `BadRequestError` before anything is sent."""
         if self._closed:
             raise BridgeError(f"this client of world {self.world!r} is closed")
         payload = self._payload(name, args)
@@ -140,19 +146,27 @@ class BrainClient:
         return self._decode(name, reply, wait)
 
     def _payload(self, name: str, args: dict[str, Any]) -> bytes:
-        """The command's bytes; those of small repeated calls (a lock-step ``tick``) are kept."""
+        """The command's bytes, checked; those of small repeated calls (a lock-step ``tick``) are kept."""
         if name not in _CACHED_CALLS:
-            return p.encode({"v": p.VERSION, "brain": self.brain, "instance": self._instance, "args": args})
+            return self._command(name, args)
         key = (name, self._instance, *args.items())
         try:
             payload = self._payloads.get(key)
         except TypeError:  # unhashable arguments: not a lock-step call
-            return p.encode({"v": p.VERSION, "brain": self.brain, "instance": self._instance, "args": args})
+            return self._command(name, args)
         if payload is None:
             if len(self._payloads) > 256:
                 self._payloads.clear()
-            payload = p.encode({"v": p.VERSION, "brain": self.brain, "instance": self._instance, "args": args})
-            self._payloads[key] = payload
+            payload = self._payloads[key] = self._command(name, args)
+        return payload
+
+    def _command(self, name: str, args: dict[str, Any]) -> bytes:
+        """The command's bytes, validated as the server validates them (`protocol.decode_command`)."""
+        payload = p.encode({"v": p.VERSION, "brain": self.brain, "instance": self._instance, "args": args})
+        try:
+            p.decode_command(name, payload)
+        except p.ProtocolError as exc:
+            raise BadRequestError(exc.kind, f"{exc} (refused by this client, nothing sent)", name) from None
         return payload
 
     def _decode(self, name: str, reply: zenoh.Reply, wait: float) -> Any:

@@ -1,7 +1,12 @@
 """The bridge's wire format, JSON part: key expressions, command envelopes, the arguments of every call,
-replies, errors and brain inputs. `PROTOCOL.md` describes it; `protocol.schema.json` is generated from
-these models (``python -m dynabrain.bridge.schema``) and every incoming JSON message is validated by
-them. Binary frames (state, robot) are in `frames`.
+replies, errors and brain inputs. `PROTOCOL.md` describes it; `protocol.schema.json` and the table of
+calls in `PROTOCOL.md` are generated from these models and `TABLE` (``python -m dynabrain.bridge.schema``)
+and every incoming JSON message is validated by them. Binary frames (state, robot) are in `frames`.
+
+`TABLE` is the one list of calls: each call's argument model and how the server treats it. The server
+dispatches through it (`handlers`: ``do_<call>`` of `WorldService` or of `BridgeServer`, checked against
+the table once per class), the client validates what it sends against it, and the schema and the
+document are written from it.
 
 Every model refuses unknown fields and wrong types (strict: ``"1"`` is not an int); a payload larger
 than its limit is refused before it is parsed.
@@ -9,9 +14,12 @@ than its limit is refused before it is parsed.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import re
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model
@@ -196,20 +204,103 @@ class MotionArgs(_Strict):
     seq: Annotated[int, Field(ge=0)] | None = None
 
 
-CALLS: dict[str, type[BaseModel]] = {
-    "tick": TickArgs, "backtick": BacktickArgs, "start": StartArgs, "stop": NoArgs,
-    "make": ObjectsArgs, "make_joint": MakeJointArgs, "remove_joint": NameArgs, "no_collision": ObjectsArgs,
-    "place": PlaceArgs, "set": SetArgs, "get": NameArgs,
-    "add_module": AddModuleArgs, "remove_module": NameArgs, "connect": ConnectArgs, "disconnect": DisconnectArgs,
-    "snapshot": NoArgs, "restore": SnapshotRef, "drop_snapshot": SnapshotRef, "fork": ForkArgs, "close": NoArgs,
-    "status": NoArgs, "view": ViewArgs, "read": ViewRef, "drop_view": ViewRef,
-    "acquire": AcquireArgs, "release": NoArgs,
-    "motion": MotionArgs, "robot_enable": RobotRef, "robot_stop": RobotRef, "robot_status": RobotRef,
-}
-"""Every call and the model of its arguments."""
+@dataclass(frozen=True, slots=True)
+class Call:
+    """One call of the protocol (an entry of `TABLE`)."""
 
-READ_ONLY = frozenset({"status", "get", "read", "view", "drop_view", "robot_status"})
-"""Calls any brain may make while another holds the world."""
+    model: type[BaseModel]
+    """Its arguments (the envelope's ``args``)."""
+    takes: str
+    """Its arguments, in words (`PROTOCOL.md`)."""
+    returns: str
+    """Its result, in words."""
+    read_only: bool = False
+    """Any brain may make it while another holds the world."""
+    server: bool = False
+    """Answered by the server (holds, forks, the loop, robots, the server's status): ``BridgeServer.do_<call>``;
+    otherwise by the world: ``WorldService.do_<call>``."""
+    slow: bool = False
+    """Always run on the server's worker thread (it may take long), never on the Zenoh thread that delivered it."""
+
+    @property
+    def doc(self) -> str:
+        """Its arguments and result in one line (the schema's description of the call)."""
+        return "; ".join(f"{what}: {text}" for what, text in (("args", self.takes), ("result", self.returns)) if text)
+
+
+TABLE: dict[str, Call] = {
+    "tick": Call(TickArgs, "`n` (1..1e6, default 1), `view` (optional)",
+                 "null, or the view's STATE frame after the ticks"),
+    "backtick": Call(BacktickArgs, "`n` (default 1)", "null; the world as it was `n` ticks ago, exactly"),
+    "start": Call(StartArgs, "`realtime` (false, true, or a speed factor), `until` (s, optional)",
+                  "`{running, realtime, until_tick}`", server=True),
+    "stop": Call(NoArgs, "", "`{running: false, error}`", server=True),
+    "make": Call(ObjectsArgs, "`objects` (names or glob patterns)", "the selection"),
+    "make_joint": Call(MakeJointArgs, "`a`, `b`, `name` (optional)", "the joint's name"),
+    "remove_joint": Call(NameArgs, "`name`", ""),
+    "no_collision": Call(ObjectsArgs, "`objects`", ""),
+    "place": Call(PlaceArgs, "`body`, `pos` [3], `quat` [4] (optional)", ""),
+    "set": Call(SetArgs, "`name` (`module.param` or an unconnected input `module.port`), `value` (lists of numbers "
+                "are arrays; a list holding objects or strings, such as a servo's `sequence` of `{pose, duration}` "
+                "steps, goes to the module as it is)", ""),
+    "get": Call(NameArgs, "`name` (a signal or a parameter)", "the value", read_only=True),
+    "add_module": Call(AddModuleArgs, "`module`: the scenario's module syntax "
+                       "`{name, python | fmu, params, period, targets, connect}`", "`{module, order}`", slow=True),
+    "remove_module": Call(NameArgs, "`name`", "the schedule order"),
+    "connect": Call(ConnectArgs, "`src`, `dst`, `delay` (default false)", ""),
+    "disconnect": Call(DisconnectArgs, "`dst`", ""),
+    "snapshot": Call(NoArgs, "", "`{snapshot: id, tick, evicted}` (the server keeps 64; older ones are evicted)"),
+    "restore": Call(SnapshotRef, "`snapshot`", ""),
+    "drop_snapshot": Call(SnapshotRef, "`snapshot`", ""),
+    "fork": Call(ForkArgs, "`name` (optional)", "`{world: <fork name>, tick}`", server=True, slow=True),
+    "close": Call(NoArgs, "(on a fork)", "", server=True, slow=True),
+    "status": Call(NoArgs, "", "the world's status, its stream layout, robots, and `server` (brains, holder, forks, "
+                   "loop)", read_only=True, server=True),
+    "view": Call(ViewArgs, "`signals` (names or patterns, in order)",
+                 "`{view: id, size, signals: [{name, shape, unit, offset}]}`", read_only=True),
+    "read": Call(ViewRef, "`view`", "a STATE frame", read_only=True),
+    "drop_view": Call(ViewRef, "`view`", "", read_only=True),
+    "acquire": Call(AcquireArgs, "`lease` (s, default 30)", "`{holder, lease}`", server=True),
+    "release": Call(NoArgs, "", "`{holder: null}`", server=True),
+    "motion": Call(MotionArgs, "`robot`, `targets` (a list in the rig's joint order, or `{joint: value}`), `route` "
+                   "(`sim`, `robot`, `both`), `sent_ns`, `seq`",
+                   "`{sim: ..., robot: {forwarded, seq, age_ms} or {forwarded: false, reason}}`", server=True),
+    "robot_enable": Call(RobotRef, "`robot`", "", server=True),
+    "robot_stop": Call(RobotRef, "`robot`", "", server=True),
+    "robot_status": Call(RobotRef, "`robot`", "link state, counts, the last measured state, shadow statistics",
+                         read_only=True, server=True),
+}
+"""Every call of the protocol (`PROTOCOL.md` lists them in this order)."""
+
+CALLS: dict[str, type[BaseModel]] = {name: call.model for name, call in TABLE.items()}
+"""Every call and the model of its arguments (from `TABLE`)."""
+
+READ_ONLY = frozenset(name for name, call in TABLE.items() if call.read_only)
+"""Calls any brain may make while another holds the world (from `TABLE`)."""
+
+SLOW = frozenset(name for name, call in TABLE.items() if call.slow)
+"""Calls always run on the server's worker thread (from `TABLE`)."""
+
+
+def handlers(owner: object, *, server: bool) -> dict[str, Callable[..., Any]]:
+    """``{call: owner.do_<call>}`` for every call of `TABLE` that ``owner`` answers: the server's calls
+    (``server``) or the world's. Raises `TypeError` when one of them has no ``do_`` method, or a ``do_``
+    method is no such call (checked once per class)."""
+    return {name: getattr(owner, f"do_{name}") for name in _handled(type(owner), server)}
+
+
+@functools.cache
+def _handled(cls: type, server: bool) -> tuple[str, ...]:
+    wanted = [name for name, call in TABLE.items() if call.server == server]
+    have = {attr[3:] for attr in dir(cls) if attr.startswith("do_") and callable(getattr(cls, attr))}
+    missing, extra = [n for n in wanted if n not in have], sorted(have - set(wanted))
+    side = "server" if server else "world"
+    problems = ([f"no do_<call> for {', '.join(missing)}"] if missing else []) + \
+               ([f"do_<call> for what is no {side} call: {', '.join(extra)}"] if extra else [])
+    if problems:
+        raise TypeError(f"{cls.__name__} does not match the bridge's table of calls ({side} calls): "
+                        + "; ".join(problems))
+    return tuple(wanted)
 
 
 class SetInput(_Strict):
@@ -275,7 +366,7 @@ def decode_command(call: str, payload: bytes) -> tuple[Envelope, BaseModel]:
     if model is None:
         from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
-        raise ProtocolError(f"unknown call {call!r}" + did_you_mean(call, CALLS), "unknown_call")
+        raise ProtocolError(f"unknown call {call!r}" + did_you_mean(call, TABLE), "unknown_call")
     env = _parse(model, payload, MAX_COMMAND_BYTES, call)
     if len(payload) <= 512:
         if len(_RECENT) >= _RECENT_MAX:
@@ -290,7 +381,7 @@ def _command_model(call: str, args: type[BaseModel]) -> type[Envelope]:
                         args=(args, Field(default_factory=args)))
 
 
-_COMMANDS: dict[str, type[Envelope]] = {call: _command_model(call, model) for call, model in CALLS.items()}
+_COMMANDS: dict[str, type[Envelope]] = {name: _command_model(name, call.model) for name, call in TABLE.items()}
 
 def decode_input(model: type[BaseModel], payload: bytes, what: str) -> BaseModel:
     return _parse(model, payload, MAX_INPUT_BYTES, what)
@@ -352,10 +443,10 @@ def schema() -> dict[str, Any]:
     """The JSON Schema of every JSON message (``protocol.schema.json``)."""
     defs: dict[str, Any] = {}
     calls: dict[str, Any] = {}
-    for call, model in CALLS.items():
-        calls[call] = {"$ref": f"#/$defs/{model.__name__}"}
+    for name, call in TABLE.items():
+        calls[name] = {"$ref": f"#/$defs/{call.model.__name__}", **({"description": call.doc} if call.doc else {})}
     models = {m.__name__: m for m in (Envelope, Reply, ErrorReply, SetInput, MotionInput, WorldEventMsg,
-                                      *CALLS.values())}
+                                      *(call.model for call in TABLE.values()))}
     for name, model in models.items():
         sub = model.model_json_schema(ref_template="#/$defs/{model}")
         defs.update(sub.pop("$defs", {}))

@@ -10,8 +10,10 @@
 - robot rigs link real robots (`robot_link`).
 
 Calls are serialised by one lock. A short call runs at once on the Zenoh thread that delivered it; a
-long one (many ticks, a new module, a fork) or one arriving while another runs goes to a worker thread
-in arrival order, so Zenoh's threads are never blocked for long.
+long one (many ticks, or a call `protocol.TABLE` marks ``slow``: a new module, a fork) or one arriving
+while another runs goes to a worker thread in arrival order, so Zenoh's threads are never blocked for
+long. Each call is answered by the ``do_<call>`` method the table names: this server's (``server``
+calls: holds, forks, the loop, robots, its status) or its `WorldService`'s (the world's calls).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import queue
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -40,7 +42,6 @@ from .streams import EventSink, StateStream
 from .zenoh_io import FRAME, JSON, Settings, open_session, payload_bytes
 
 _log = logging.getLogger("dynabrain.bridge")
-SLOW_CALLS = frozenset({"add_module", "fork", "close"})
 MAX_FORKS = 16
 
 
@@ -102,6 +103,7 @@ class BridgeServer:
         self._worker: threading.Thread | None = None
         self._entities: list[Any] = []
         self._fork_count = 0
+        self._handlers = p.handlers(self, server=True)
 
     # -- lifecycle ------------------------------------------------------------------------------------------
     def open(self) -> list[str]:
@@ -212,7 +214,7 @@ class BridgeServer:
             self._reply_error(query, "bad_request", f"{type(exc).__name__}: {exc}", call)
             return
         job = (served, call, env, args, query, key)
-        quick = call not in SLOW_CALLS and not (call == "tick" and args.n > self.options.inline_ticks)
+        quick = call not in p.SLOW and not (call == "tick" and args.n > self.options.inline_ticks)
         if quick and self._jobs.empty() and self._call_lock.acquire(blocking=False):
             try:
                 self._run(job)
@@ -275,18 +277,18 @@ class BridgeServer:
         is_main = served is self.main
         if is_main:
             self.hold.check(call, env.brain)
-        handler = self._SERVER_CALLS.get(call)
-        result = handler(self, served, env, args) if handler is not None else served.service.call(call, args)
+        handler = self._handlers.get(call)  # a server call; otherwise the world's
+        result = handler(served, env, args) if handler is not None else served.service.call(call, args)
         if is_main:
             self.hold.touch(env.brain)
         return result
 
     # -- holds ----------------------------------------------------------------------------------------------
-    def _acquire(self, served: _Served, env: p.Envelope, args: p.AcquireArgs) -> dict[str, Any]:
+    def do_acquire(self, served: _Served, env: p.Envelope, args: p.AcquireArgs) -> dict[str, Any]:
         self._require_main(served, "acquire")
         return self.hold.acquire(env.brain, args.lease)
 
-    def _release(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
+    def do_release(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
         self._require_main(served, "release")
         return self.hold.release(env.brain)
 
@@ -313,7 +315,7 @@ class BridgeServer:
             self._close_fork(served, reason=f"brain {brain!r} is gone")
 
     # -- forks ----------------------------------------------------------------------------------------------
-    def _fork(self, served: _Served, env: p.Envelope, args: p.ForkArgs) -> dict[str, Any]:
+    def do_fork(self, served: _Served, env: p.Envelope, args: p.ForkArgs) -> dict[str, Any]:
         if len(self._served) - 1 >= MAX_FORKS:
             raise DynabrainError(f"too many forks ({MAX_FORKS}); close some first")
         self._fork_count += 1
@@ -328,7 +330,7 @@ class BridgeServer:
         self.events.emit("fork", world=name, brain=env.brain, tick=world.tick_count)
         return {"world": name, "tick": world.tick_count}
 
-    def _close(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> None:
+    def do_close(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> None:
         if served is self.main:
             raise DynabrainError(f"close is for forks; the served world {self.name!r} closes with its server")
         self._close_fork(served, reason=f"closed by {env.brain!r}")
@@ -341,16 +343,16 @@ class BridgeServer:
         self.events.emit("fork_closed", world=served.name, reason=reason)
 
     # -- loop -----------------------------------------------------------------------------------------------
-    def _start(self, served: _Served, env: p.Envelope, args: p.StartArgs) -> dict[str, Any]:
+    def do_start(self, served: _Served, env: p.Envelope, args: p.StartArgs) -> dict[str, Any]:
         self._require_main(served, "start")
         return self.loop.start(args.realtime, args.until)
 
-    def _stop(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
+    def do_stop(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
         self._require_main(served, "stop")
         return self.loop.stop()
 
     # -- robots ---------------------------------------------------------------------------------------------
-    def _motion(self, served: _Served, env: p.Envelope, args: p.MotionArgs) -> dict[str, Any]:
+    def do_motion(self, served: _Served, env: p.Envelope, args: p.MotionArgs) -> dict[str, Any]:
         return self.motion(served, args, env.brain)
 
     def motion(self, served: _Served, args: p.MotionArgs, brain: str | None) -> dict[str, Any]:
@@ -377,16 +379,16 @@ class BridgeServer:
             raise DynabrainError(f"no robot {robot!r}")
         return link
 
-    def _robot_enable(self, served: _Served, env: p.Envelope, args: p.RobotRef) -> dict[str, Any]:
+    def do_robot_enable(self, served: _Served, env: p.Envelope, args: p.RobotRef) -> dict[str, Any]:
         self._require_main(served, "robot_enable")
         return self._robot(args.robot).enable(env.brain)
 
-    def _robot_stop(self, served: _Served, env: p.Envelope, args: p.RobotRef) -> dict[str, Any]:
+    def do_robot_stop(self, served: _Served, env: p.Envelope, args: p.RobotRef) -> dict[str, Any]:
         self._require_main(served, "robot_stop")
         self._robot(args.robot).stop(f"asked by brain {env.brain!r}")
         return {"sent": "stop"}
 
-    def _robot_status(self, served: _Served, env: p.Envelope, args: p.RobotRef) -> dict[str, Any]:
+    def do_robot_status(self, served: _Served, env: p.Envelope, args: p.RobotRef) -> dict[str, Any]:
         self._require_main(served, "robot_status")
         return self._robot(args.robot).status()
 
@@ -416,7 +418,7 @@ class BridgeServer:
             self.events.emit("input_error", message=f"in/motion: {exc}")
 
     # -- status ---------------------------------------------------------------------------------------------
-    def _status(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
+    def do_status(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
         out = served.service.status()
         holder = self.hold.holder()
         out["server"] = {
@@ -427,12 +429,6 @@ class BridgeServer:
             "stream_frames": self.stream.frames_sent, "input_errors": served.service.input_errors[-5:],
         }
         return out
-
-    _SERVER_CALLS: ClassVar[dict[str, Callable[..., Any]]] = {
-        "acquire": _acquire, "release": _release, "fork": _fork, "close": _close, "start": _start, "stop": _stop,
-        "motion": _motion, "robot_enable": _robot_enable, "robot_stop": _robot_stop, "robot_status": _robot_status,
-        "status": _status,
-    }
 
 
 def _full_targets(joints: tuple[str, ...], targets: list | dict, robot: str) -> np.ndarray:
