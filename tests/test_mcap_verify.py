@@ -1,9 +1,11 @@
 """`replay --verify`: a recording with rollbacks, restores, a failed tick, parameter and input edits
-and modules arriving and leaving re-simulates bit for bit; a doctored recording fails at the tick
-that was changed, naming the signal and both values."""
+and modules arriving and leaving (Python classes, and FMUs built from source, in process or isolated)
+re-simulates bit for bit; a doctored recording fails at the tick that was changed, naming the signal
+and both values."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,7 @@ from dynabrain.orchestrator.logs.scan import Channel, Message, Metadata, Schema,
 from dynabrain.orchestrator.logs.schema import BusCodec
 from dynabrain.orchestrator.logs.verify import verify
 from dynabrain.orchestrator.logs.write import McapWriter
+from dynabrain.orchestrator.scenario.make import make_module
 from dynabrain.orchestrator.scenario.model import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
@@ -115,6 +118,53 @@ def test_verify_passes_on_a_cli_run_and_fails_on_a_doctored_file(tmp_path):
     failed = runner.invoke(app, ["replay", str(doctored), "--verify"])
     assert failed.exit_code == 1
     assert "DIVERGES at tick 1234" in failed.output and "core.bb.pos: recorded" in failed.output
+
+
+ARMS = """\
+name: arms
+world: {step: 2ms, duration: 2s, core: mujoco}
+scene:
+  - plane: {name: ground, color: grey}
+  - capsule: {name: arm1, size: [0.02, 0.4], mass: 0.5, pos: [0, 0, 1.0], color: blue,
+              joint: {hinge: {name: j1, axis: [0, 1, 0], anchor: [0, 0, 0.2], damping: 0.01}}}
+  - capsule: {name: arm2, size: [0.02, 0.4], mass: 0.5, pos: [0.5, 0, 1.0], color: orange,
+              joint: {hinge: {name: j2, axis: [0, 1, 0], anchor: [0, 0, 0.2], damping: 0.01}}}
+"""
+"""Two hanging arms and no module: the servo FMU that holds them arrives through the API."""
+
+
+@pytest.mark.usefixtures("fmu_cache")
+@pytest.mark.parametrize("isolate", [False, True], ids=["in_process", "isolated"])
+def test_verify_passes_on_a_run_that_added_an_fmu_through_the_api(tmp_path, isolate):
+    folder = tmp_path / "scenario"
+    shutil.copytree(SCENARIOS.parent / "fmus" / "servo", folder / "fmus" / "servo")  # named relative to it
+    (folder / "arms.yaml").write_text(ARMS)
+    path = tmp_path / "arms.mcap"
+    sc = load_scenario(folder / "arms.yaml")
+    world = sc.build()
+    McapLogger(path, window=8, batch=4).attach(world, sc)
+    world.tick(20)
+    spec = {"name": "servo", "fmu": "fmus/servo", "params": {"kp": 20, "kd": 1, "tau_max": 5, "lag": "10ms"},
+            **({"isolate": True} if isolate else {})}
+    joints = [("core.j1.q", "servo.q[1]"), ("core.j2.q", "servo.q[2]"), ("core.j1.qd", "servo.qd[1]"),
+              ("core.j2.qd", "servo.qd[2]"), ("servo.tau[1]", "core.j1.force"), ("servo.tau[2]", "core.j2.force")]
+    world.add_module(make_module(spec, base_dir=str(folder)), connect=joints)
+    assert (getattr(world.modules["servo"], "pid", None) is not None) is isolate  # its own process, or none
+    world.set("servo.q_ref", [0.5, -0.5])
+    world.tick(30)
+    world.backtick(12)                      # across the FMU's state: the run goes on from tick 38
+    world.set("servo.tau_max", 0.6)
+    world.tick(25)
+    moved = world.get("core.j1.q")
+    world.close()
+    assert abs(moved) > 1e-3  # the servo drove the arm: its outputs reach the physics
+
+    added = [e["detail"]["spec"] for e in read_index(path).events if e["kind"] == "module_added"]
+    assert added == [{**spec, "params": added[0]["params"], "period": "2000000ns",
+                      "connect": [list(c) for c in joints]}]
+    done = CliRunner().invoke(app, ["replay", str(path), "--verify"])
+    assert done.exit_code == 0, done.output
+    assert "verify: identical up to tick 63" in done.output, done.output
 
 
 def change_bus_value(src: Path, dst: Path, *, tick: int, signal: str, component: int, delta: float) -> None:
