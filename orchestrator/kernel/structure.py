@@ -13,19 +13,21 @@ The schedule (the master algorithm, Gauss-Seidel): at each tick,
 A connection is delayed when written so (``delay: true``) or when its source module is not
 feedthrough (its outputs come from its state: a physics core). Direct connections must form no
 cycle; a cycle is an algebraic loop and is reported with its path. The world runs the schedule as one
-generated function per structure (`Structure.compiled`, see `orchestrator.compiled`).
+generated function per structure (`Structure.compiled`, see `orchestrator.kernel.compiled`), or, when
+made with ``compiled=False``, as a plain loop over the same entries (`Structure.plain`).
 """
 
 from __future__ import annotations
 
 import functools
 import heapq
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
-from .compiled import CompiledTick
+from .compiled import CompiledTick, PlainTick
 from .errors import AlgebraicLoopError, WiringError
 from .module import Module, Port
 from .suggest import did_you_mean
@@ -129,6 +131,22 @@ class Step:
     copies: Copies
 
 
+class Dispatch(NamedTuple):
+    """One entry of the plan as the tick runs it (`CompiledTick`, `PlainTick`): every ``period_ticks``
+    ticks from tick ``phase``, make the module's input copies, then call ``step(t_ns, period_ns)``."""
+
+    name: str
+    step: Callable[[int, int], None]
+    """The module's bound ``step``, taken when the structure is built."""
+    period_ns: int
+    period_ticks: int
+    phase: int
+    copies: Copies
+    """Copies made on the bus's memoryview (`Structure.delayed`'s form)."""
+    gather: Copies
+    """Copies made on the bus array: one pair of index arrays (`Structure.delayed_gather`'s form)."""
+
+
 @dataclass(frozen=True)
 class Structure:
     records: tuple[ModuleRecord, ...] = ()
@@ -137,9 +155,8 @@ class Structure:
     plan: tuple[Step, ...] = ()
     delayed: Copies = ()
     """Copies of the delayed connections, made at the start of each tick."""
-    dispatch: tuple[tuple, ...] = ()
-    """The plan flattened for the hot loop: (name, step, period_ns, period_ticks, phase, copies,
-    gather), ``copies`` and ``gather`` as `Structure.delayed` and `Structure.delayed_gather`."""
+    dispatch: tuple[Dispatch, ...] = ()
+    """The plan flattened for the tick, one entry per module in schedule order."""
     delayed_gather: Copies = ()
     """Copies made on the bus array rather than on its memoryview: one pair of index arrays, when a
     set of connections has too many separate runs (``delayed`` is then empty)."""
@@ -149,8 +166,14 @@ class Structure:
 
     @functools.cached_property
     def compiled(self) -> CompiledTick:
-        """The tick of this structure as one generated function (see `orchestrator.compiled`)."""
+        """The tick of this structure as one generated function (see `orchestrator.kernel.compiled`)."""
         return CompiledTick(self)
+
+    @functools.cached_property
+    def plain(self) -> PlainTick:
+        """The same tick as `compiled`, run by a plain loop over `dispatch` (no generated code): the one
+        to step through in a debugger, and the reference the generated one is tested against."""
+        return PlainTick(self)
 
     def record(self, name: str) -> ModuleRecord | None:
         for rec in self.records:
@@ -189,8 +212,9 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
                   and by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
         plan.append(Step(rec, _copies(layout, direct)))
     delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
-    dispatch = tuple((st.record.name, st.record.module.step, st.record.period_ns, st.record.period_ticks,
-                      st.record.phase, *_split_gather(st.copies)) for st in plan)
+    dispatch = tuple(Dispatch(st.record.name, st.record.module.step, int(st.record.period_ns),
+                              int(st.record.period_ticks), int(st.record.phase), *_split_gather(st.copies))
+                     for st in plan)
     delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
     saves = tuple(_save_kind(rec.module) for rec in records)
     return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather, saves)

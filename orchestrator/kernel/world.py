@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .compiled import state_saver
+from .compiled import compiled_by_default, state_saver
 from .core import PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
@@ -50,15 +50,23 @@ ScheduledAction = Callable[["World"], None]
 
 
 class World:
-    """A simulated world the brain owns. See the module docstring for one tick."""
+    """A simulated world the brain owns. See the module docstring for one tick.
+
+    ``compiled`` picks how a tick runs the schedule: True, the structure's tick as one generated
+    function (`Structure.compiled`, the fast way); False, a plain loop over the same entries
+    (`Structure.plain`), the one to debug with. Both give bit-identical states. Left out (None), the
+    environment decides: ``DYNABRAIN_COMPILED=0`` runs every such world plain, which debugs a whole
+    program without editing it; unset or ``1``, generated. A fork keeps its world's choice.
+    """
 
     def __init__(self, name: str = "world", *, step: int | str = "2ms", seed: int = 0,
-                 history: int = 1000, core: PhysicsCore | None = None):
+                 history: int = 1000, core: PhysicsCore | None = None, compiled: bool | None = None):
         self.name = name
         self.dt_ns = step if isinstance(step, int) else parse_duration_ns(step)
         if self.dt_ns <= 0:
             raise DynabrainError(f"the base step must be positive, got {step!r}")
         self.seed = int(seed)
+        self._compiled = compiled_by_default() if compiled is None else bool(compiled)
         self._lock = threading.RLock()
         self._history = History(history)
         self._structure = build_structure((), ())
@@ -171,13 +179,14 @@ class World:
                     current = f"event {label}"
                     action(self)
                 self._source = "api"
-            compiled = self._structure.compiled  # after the events: they may have changed the structure
+            # after the events: they may have changed the structure
+            runner = self._structure.compiled if self._compiled else self._structure.plain
             current = None
-            compiled.run(n, n * self.dt_ns, self._mv, self._buf)
+            runner.run(n, n * self.dt_ns, self._mv, self._buf)
         except Exception as exc:  # roll back to the last good tick, then report
             self._source = "api"
             if current is None:  # a module's step: the traceback says which
-                current = compiled.failed_module(exc.__traceback__) or "?"
+                current = runner.failed_module(exc.__traceback__) or "?"
             raise self._rollback_failed_tick(n, current, exc) from exc
         except BaseException:  # KeyboardInterrupt and the like: roll back, re-raise as is
             self._source = "api"
@@ -301,7 +310,7 @@ class World:
                 for rec in self._structure.records:
                     rec.module._take_ports(bindings[rec.name])
             other = World(name or f"{self.name}-fork", step=self.dt_ns, seed=self.seed,
-                          history=self._history.depth)
+                          history=self._history.depth, compiled=self._compiled)
             records = [ModuleRecord(r.name, clones[r.name], r.period_ticks, r.phase, r.period_ns, r.inputs,
                                     r.outputs) for r in self._structure.records]
             other._install(build_structure(records, self._structure.connections), carry_values=False)
