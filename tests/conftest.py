@@ -11,3 +11,13 @@ def fmu_cache(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("DYNABRAIN_CACHE", str(tmp_path_factory.mktemp("cache")))
         yield
+
+
+@pytest.fixture(scope="module", params=[True, False], ids=["compiled", "plain"])
+def tick_runner(request):
+    """Runs a test module twice: its worlds made without ``compiled=`` step with the generated tick,
+    then with the plain loop (through ``DYNABRAIN_COMPILED``). Use it for a whole module with
+    ``pytestmark = pytest.mark.usefixtures("tick_runner")``; the value is the ``compiled`` in force."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("DYNABRAIN_COMPILED", "1" if request.param else "0")
+        yield request.param

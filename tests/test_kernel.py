@@ -1,7 +1,8 @@
 """The kernel's own logic: schedule, wiring checks, history and rollback, fork, threads, observers.
 
 These tests use small signal modules (the orchestrator's logic is what is under test); the physics
-core's rollback is tested with real MuJoCo in test_rollback_physics.py.
+core's rollback is tested with real MuJoCo in test_rollback_physics.py. Every test runs with the
+generated tick and with the plain loop (`tick_runner` in conftest.py).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from dynabrain.orchestrator.kernel.errors import AlgebraicLoopError, ModuleError
 from dynabrain.orchestrator.kernel.module import Capabilities, Module, Param, Port
 from dynabrain.orchestrator.kernel.observers import Observer
 from dynabrain.orchestrator.kernel.world import World
+
+pytestmark = pytest.mark.usefixtures("tick_runner")  # every test both ways: generated tick, plain loop
 
 
 class Tracer(Module):
@@ -528,3 +531,10 @@ def test_a_view_of_a_one_dimensional_block_is_a_run_of_its_elements():
         with pytest.raises(WiringError, match=rf"port {bad[0]!r} of shape .* does not fit 'data' \(6,\) from element"):
             w.add_module(Runs("bad", [bad]))
     assert list(w.modules) == ["r"]
+
+
+def test_worlds_step_the_way_the_module_run_asks(tick_runner):
+    w = World(step="1ms")
+    w.add_module(Counter("c"))
+    w.tick(2)
+    assert w._compiled is tick_runner and w.fork()._compiled is tick_runner

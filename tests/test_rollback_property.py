@@ -1,13 +1,15 @@
 """Property tests of rollback with each real physics core (MuJoCo and Exudyn): random sequences of
 tick, backtick, set, add, remove, make, make_joint and no_collision. Replaying from a rollback is
 bit-identical, and so is a fresh world running the same sequence (Exudyn: velocity Verlet with one
-thread; see `dynabrain.modules.exudyn.system`)."""
+thread; see `dynabrain.modules.exudyn.system`). Every test runs with the generated tick and with the
+plain loop (`tick_runner` in conftest.py)."""
 
 from __future__ import annotations
 
 import pickle
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -17,6 +19,8 @@ from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.orchestrator.kernel.core import COLORS, BodySpec, JointSpec, SceneSpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.world import World
+
+pytestmark = pytest.mark.usefixtures("tick_runner")  # every test both ways: generated tick, plain loop
 
 OBJECTS = ["a", "b", "c", "arm"]
 CORES = {"mujoco": MujocoCore, "exudyn": ExudynCore}
