@@ -136,7 +136,7 @@ class Camera(Module):
         """A fork's camera: same configuration, the copied core, its own GL context (opened lazily)."""
         twin = copy.copy(self)
         memo[id(self)] = twin
-        twin._drop_ports()
+        twin.bind_ports(None)
         twin._param_values = dict(self._param_values)
         twin._link = copy.deepcopy(self._link, memo)
         twin._gl, twin._mjr = None, None

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec, PhysicsCore, SceneSpec
-from dynabrain.orchestrator.kernel.module import SetupContext
+from dynabrain.orchestrator.kernel.module import PortBinding, SetupContext
 
 DT = 2_000_000
 G = 9.81
@@ -33,7 +33,7 @@ def bind(core: PhysicsCore) -> tuple[dict, dict]:
                 dst[p.name] = view
         flats.append(flat)
     inp, out = bound
-    core._take_ports((inp, out, flats[0], flats[1]))
+    core.bind_ports(PortBinding(inp, out, flats[0], flats[1]))
     core.bind()
     return inp, out
 

@@ -15,7 +15,7 @@ from dynabrain.orchestrator.fmu.check import check_fmu
 from dynabrain.orchestrator.fmu.module import FMUModule
 from dynabrain.orchestrator.fmu.states import FMUState, SerializedFMUState
 from dynabrain.orchestrator.kernel.errors import ForkError, RollbackError
-from dynabrain.orchestrator.kernel.module import SetupContext
+from dynabrain.orchestrator.kernel.module import PortBinding, SetupContext
 from dynabrain.orchestrator.kernel.world import World
 
 FMUS = Path(__file__).resolve().parents[1] / "fmus"
@@ -330,8 +330,9 @@ def test_ports_not_side_by_side_in_memory_go_through_staging_buffers():
     m.setup(SetupContext("w", 1_000_000, 1_000_000, 0, np.random.default_rng(0)))
     try:
         bus = np.zeros(8)  # side by side, as the world lays ports out: bound in place
-        m.inp = {"q": bus[0:1].reshape(()), "qd": bus[1:2].reshape(())}
-        m.out = {n: bus[2 + i:3 + i].reshape(()) for i, n in enumerate(("position", "velocity", "force"))}
+        outputs = ("position", "velocity", "force")
+        m.bind_ports(PortBinding({"q": bus[0:1].reshape(()), "qd": bus[1:2].reshape(())},
+                                 {n: bus[2 + i:3 + i].reshape(()) for i, n in enumerate(outputs)}))
         bus[0] = 0.01
         m.bind()
         assert not m._gather and not m._scatter
@@ -339,7 +340,7 @@ def test_ports_not_side_by_side_in_memory_go_through_staging_buffers():
         assert bus[4] == pytest.approx(-40.0)
         inp = {"q": np.array(0.02), "qd": np.array(0.0)}  # separate arrays: copied in and out each step
         out = {n: np.array(0.0) for n in ("position", "velocity", "force")}
-        m.inp, m.out = inp, out
+        m.bind_ports(PortBinding(inp, out))
         m.bind()
         assert m._gather and m._scatter
         m.step(0, 1_000_000)

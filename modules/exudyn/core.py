@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from dynabrain.orchestrator.kernel.core import BodyInfo, EditedCore, SceneSpec
+from dynabrain.orchestrator.kernel.core import NO_EDITS, BodyInfo, EditedCore, Edits, SceneSpec
 from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Param, Port, SetupContext
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
@@ -51,7 +51,7 @@ from dynabrain.orchestrator.kernel.suggest import did_you_mean
 from . import cable as xc
 from . import geometry as geo
 from .calibrate import zeta_for
-from .plan import NO_EDITS, make_plan, to7
+from .plan import FrozenObject, make_plan, to7
 from .system import INTEGRATORS, Options, Start, System
 from .topology import analyse, fail
 
@@ -97,7 +97,7 @@ class ExudynCore(EditedCore):
         self._period = DEFAULT_PERIOD_S
         self._top = analyse(name, scene)
         self._rows = {b: i for i, b in enumerate(self._top.bodies)}
-        self._cache: OrderedDict[tuple, System] = OrderedDict()
+        self._cache: OrderedDict[tuple[Edits, float], System] = OrderedDict()
         self._edits = NO_EDITS
         self._init_state()
         self._s = self._structure(NO_EDITS, Start())
@@ -204,7 +204,7 @@ class ExudynCore(EditedCore):
         and edits (building is deterministic) and set to the same state; unbound."""
         twin = copy.copy(self)
         memo[id(self)] = twin
-        twin._drop_ports()
+        twin.bind_ports(None)
         twin._unbind()
         twin._param_values = dict(self._param_values)
         for attr in ("_bp", "_bq", "_bl", "_ba", "_jq", "_jqd"):
@@ -325,8 +325,8 @@ class ExudynCore(EditedCore):
         return self._s.cable_coords(name)[0][:, :3].copy()
 
     # -- structural edits --------------------------------------------------------------------------------------
-    def _freeze_entry(self, obj: str) -> tuple:
-        """(object, ((body, world pose 7), ...), ((joint, q), ...), ((cable, coords), ...)), now."""
+    def _freeze_entry(self, obj: str) -> FrozenObject:
+        """Where the bodies, joints and cables of ``obj`` stand now."""
         top = self._top
         bodies, joints, cables = [], [], []
         for b in top.subtree[obj]:
@@ -337,7 +337,7 @@ class ExudynCore(EditedCore):
                 joints.append((j, float(self._jq[top.qjoints.index(j)])))
             if top.role[b] == "cable":
                 cables.append((b, tuple(map(float, self._s.cable_coords(b)[0].reshape(-1)))))
-        return (obj, tuple(bodies), tuple(joints), tuple(cables))
+        return FrozenObject(obj, tuple(bodies), tuple(joints), tuple(cables))
 
     def _weld_data(self, a: str, b: str) -> tuple:
         return to7(geo.compose(geo.inverse(self.body_pose(a)), self.body_pose(b)))
@@ -364,7 +364,7 @@ class ExudynCore(EditedCore):
         self._write_all()
 
     # -- structures -------------------------------------------------------------------------------------------
-    def _structure(self, edits: tuple, start: Start) -> System:
+    def _structure(self, edits: Edits, start: Start) -> System:
         settings = self._settings()
         key = (edits, settings["wn"])
         s = self._cache.get(key)
@@ -392,7 +392,7 @@ class ExudynCore(EditedCore):
             start.q[j], start.qd[j] = float(self._jq[i]), float(self._jqd[i])
         return start
 
-    def _activate(self, edits: tuple, *, carry: bool) -> None:
+    def _activate(self, edits: Edits, *, carry: bool) -> None:
         if carry:
             self._cache.pop((edits, self._settings()["wn"]), None)  # a cached one would start where it was
             new = self._structure(edits, self._start_now())
@@ -401,7 +401,7 @@ class ExudynCore(EditedCore):
         self._s, self._edits = new, edits
         self._s.apply(**self._settings())
 
-    def _edit(self, edits: tuple) -> None:
+    def _edit(self, edits: Edits) -> None:
         if edits != self._edits:
             self._activate(edits, carry=True)
             self._write_all()

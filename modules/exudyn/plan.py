@@ -1,25 +1,39 @@
 """A structure of the Exudyn core, planned: which carrier every body rides on once the edits
 (frozen objects, welds) are applied. See `exudyn.topology` for what a carrier is.
 
-Edits are plain tuples, so they compare, hash and pickle (they are part of the core's state):
-``(frozen, welds, groups)`` with
+The edits are the kernel's `Edits` (immutable named tuples, so they compare, hash and pickle: they
+are part of the core's state):
 
-- ``frozen``: one ``(object, ((body, world pose 7), ...), ((joint, q), ...), ((cable, node coords), ...))``
-  per frozen object: where everything stood when it froze;
-- ``welds``: ``(name, a, b, pose of b in a's frame 7)`` per `make_joint`;
+- ``frozen``: one `FrozenObject` per frozen object: where everything stood when it froze;
+- ``welds``: one `Weld` per `make_joint`, its ``data`` the pose of b in a's frame (7 values);
 - ``groups``: sorted tuples of bodies that do not collide with one another (`no_collision`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+
+from dynabrain.orchestrator.kernel.core import Edits
+from dynabrain.orchestrator.kernel.portable import state_type
 
 from . import geometry as geo
 from .topology import Topology, fail
 
-NO_EDITS: tuple = ((), (), ())
+
+@state_type
+class FrozenObject(NamedTuple):
+    """The Exudyn core's entry of one frozen object in `Edits.frozen` (`ExudynCore._freeze_entry`)."""
+
+    object: str
+    bodies: tuple[tuple[str, tuple[float, ...]], ...]
+    """(body, its world pose: x, y, z, qw, qx, qy, qz) for every body of the object's subtree."""
+    joints: tuple[tuple[str, float], ...]
+    """(joint, its value) for every hinge or slide joint of the subtree."""
+    cables: tuple[tuple[str, tuple[float, ...]], ...]
+    """(cable, its node coordinates, flat) for every cable of the subtree."""
 
 
 @dataclass
@@ -54,9 +68,8 @@ def from7(v) -> geo.Pose:
     return geo.pose(v[:3], v[3:])
 
 
-def make_plan(top: Topology, edits: tuple) -> Plan:
+def make_plan(top: Topology, edits: Edits) -> Plan:
     """The carriers of the structure ``edits``; refuses welds the core cannot make."""
-    frozen, welds, groups = edits
     carriers: dict[str, Carrier] = {"": Carrier("", "world")}
     carrier_of: dict[str, str] = {}
     for n in top.bodies:
@@ -67,22 +80,22 @@ def make_plan(top: Topology, edits: tuple) -> Plan:
         carrier_of[n] = own
     frozen_joints: dict[str, float] = {}
     frozen_cables: dict[str, np.ndarray] = {}
-    for _obj, bodies, joints, cables in frozen:
-        for body, world in bodies:
+    for entry in edits.frozen:
+        for body, world in entry.bodies:
             if top.role[body] != "cable":
                 _move(carriers, carrier_of, body, "", from7(world))
-        frozen_joints.update(joints)
-        for cable, coords in cables:
+        frozen_joints.update(entry.joints)
+        for cable, coords in entry.cables:
             carriers[cable].kind = "frozen_cable"
             frozen_cables[cable] = np.asarray(coords, dtype=float)
-    for weld in welds:
-        _weld(top, carriers, carrier_of, *weld)
+    for weld in edits.welds:
+        _weld(top, carriers, carrier_of, weld.name, weld.a, weld.b, weld.data)
     carriers = {k: c for k, c in carriers.items() if c.members or k == ""}
     trees: dict[str, list[str]] = {}
     for n in top.bodies:
         if carriers.get(n) is not None and carriers[n].kind == "link":
             trees.setdefault(top.tree_of[n], []).append(n)
-    return Plan(carriers, carrier_of, trees, frozen_joints, frozen_cables, tuple(groups))
+    return Plan(carriers, carrier_of, trees, frozen_joints, frozen_cables, tuple(edits.groups))
 
 
 def _move(carriers: dict[str, Carrier], carrier_of: dict[str, str], body: str, dest: str, rel: geo.Pose) -> None:

@@ -44,6 +44,8 @@ from exudyn.itemInterface import (
     ObjectRigidBody,
 )
 
+from dynabrain.orchestrator.kernel.core import Edits
+
 from . import cable as xc
 from . import contact as xk
 from . import geometry as geo
@@ -109,7 +111,7 @@ class Options:
 class System(Outputs):
     """An Exudyn system for one structure (a `Plan`), ready to step."""
 
-    def __init__(self, top: Topology, plan: Plan, edits: tuple, start: Start, options: Options, settings: dict):
+    def __init__(self, top: Topology, plan: Plan, edits: Edits, start: Start, options: Options, settings: dict):
         self.top, self.plan, self.edits, self._start = top, plan, edits, start
         self.options, self.verbose = options, options.verbose
         self.sc = exu.SystemContainer()

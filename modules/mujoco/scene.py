@@ -24,12 +24,14 @@ import os
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.kernel.core import FLEX_SHAPES, SHAPES, BodySpec, SceneSpec
+from dynabrain.orchestrator.kernel.core import FLEX_SHAPES, SHAPES, BodySpec, Edits, SceneSpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.portable import state_type
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
 ENGINE = "mujoco"
@@ -309,16 +311,39 @@ def _geom_info(model: mujoco.MjModel, names: tuple[str, ...]) -> dict[str, tuple
 
 
 # -- structures ------------------------------------------------------------------------------------------
-def build_structure(core: str, source: SpecSource, edits: tuple) -> tuple[mujoco.MjModel, tuple[str, ...]]:
-    """Compile the structure ``edits`` = (frozen, welds, groups); return it and its moving bodies."""
-    frozen, welds, groups = edits
-    spec, removed = source.spec({b: rel for entry in frozen for b, rel, _world in entry[1]})
+@state_type
+class FrozenBody(NamedTuple):
+    """Where one body of a frozen object stood when it froze."""
+
+    name: str
+    in_parent: tuple[float, ...] | None
+    """Its pose in its parent's frame (x, y, z, qw, qx, qy, qz), baked into the model; None for a body
+    without joints of its own (it keeps the pose the model gives it)."""
+    in_world: tuple[float, ...]
+    """Its pose in the world frame (x, y, z, qw, qx, qy, qz): the outputs of a body fused into the world."""
+
+
+@state_type
+class FrozenObject(NamedTuple):
+    """The MuJoCo core's entry of one frozen object in `Edits.frozen` (`MujocoCore._freeze_entry`)."""
+
+    object: str
+    bodies: tuple[FrozenBody, ...]
+    """Every body of the object's subtree."""
+    joints: tuple[tuple[str, tuple[float, ...]], ...]
+    """(joint, its qpos values) for every joint of the subtree: its outputs while frozen, and where it
+    starts again when the object is selected."""
+
+
+def build_structure(core: str, source: SpecSource, edits: Edits) -> tuple[mujoco.MjModel, tuple[str, ...]]:
+    """Compile the structure ``edits``; return it and its moving bodies."""
+    spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen for b in entry.bodies})
     if removed:
         _prune(spec, removed)
-    for name, a, b, data in welds:
-        spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY, name=name,
-                          name1=a, name2=b, data=np.asarray(data, dtype=np.float64))
-    for pair in _exclusions(spec, groups):
+    for weld in edits.welds:
+        spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY, name=weld.name,
+                          name1=weld.a, name2=weld.b, data=np.asarray(weld.data, dtype=np.float64))
+    for pair in _exclusions(spec, edits.groups):
         spec.add_exclude(bodyname1=pair[0], bodyname2=pair[1])
     movers = _moving_bodies(spec)
     for kind, tag in ((mujoco.mjtSensor.mjSENS_FRAMELINVEL, "lin"),
@@ -327,11 +352,11 @@ def build_structure(core: str, source: SpecSource, edits: tuple) -> tuple[mujoco
             spec.add_sensor(name=f"{VEL_PREFIX}{tag}_{b}", type=kind, objtype=mujoco.mjtObj.mjOBJ_XBODY,
                             objname=b)
     try:
-        if frozen:
+        if edits.frozen:
             spec.fuse_static()
         return spec.compile(), movers
     except Exception as exc:
-        what = ", ".join(e[0] for e in frozen)
+        what = ", ".join(e.object for e in edits.frozen)
         raise fail(core, f"cannot build the structure (frozen: {what or 'none'}): {exc}") from None
 
 
@@ -502,10 +527,21 @@ def _bounce(model, data, z0: float, v: float, gravity: float, limit: int) -> flo
 
 
 # -- helpers of the core's structures ------------------------------------------------------------------
-def joint_slice(model: mujoco.MjModel, j: int) -> tuple[int, int, int, int]:
-    """(qpos address, qpos size, dof address, dof count) of joint ``j``."""
+class JointSlice(NamedTuple):
+    """Where a joint's values lie in MuJoCo's ``qpos`` and ``qvel`` arrays."""
+
+    qpos_adr: int
+    nq: int
+    """Its number of position values (7 free, 4 ball, 1 hinge or slide)."""
+    dof_adr: int
+    nv: int
+    """Its number of degrees of freedom (6 free, 3 ball, 1 hinge or slide)."""
+
+
+def joint_slice(model: mujoco.MjModel, j: int) -> JointSlice:
+    """Where the values of joint ``j`` lie in ``qpos`` and ``qvel``."""
     size = {0: (7, 6), 1: (4, 3)}.get(int(model.jnt_type[j]), (1, 1))
-    return int(model.jnt_qposadr[j]), size[0], int(model.jnt_dofadr[j]), size[1]
+    return JointSlice(int(model.jnt_qposadr[j]), size[0], int(model.jnt_dofadr[j]), size[1])
 
 
 def pose_index(pairs: list[tuple[int, int]]) -> tuple:
@@ -522,12 +558,13 @@ def flat_index(rows: list[int], width: int) -> slice | np.ndarray:
 
 
 def carry_over(old, new) -> None:
-    """Start structure ``new`` from the state of structure ``old`` (the core's compiled structures):
-    joints, actuators and equalities by name; joints that were frozen start at their frozen value, at rest."""
+    """Start compiled scene ``new`` from the state of compiled scene ``old`` (the core's
+    `CompiledScene`s): joints, actuators and equalities by name; joints that were frozen start at
+    their frozen value, at rest."""
     m, d = new.model, new.data
     mujoco.mj_resetData(m, d)
     d.time = old.data.time
-    frozen = {j: v for entry in old.edits[0] for j, v in entry[2]}
+    frozen = {j: v for entry in old.edits.frozen for j, v in entry.joints}
     od = old.data
     for name, (qa, nq, da, nv) in new.joint_slices.items():
         if name in old.joint_slices:

@@ -7,7 +7,7 @@ names below are what modules and the rooms above use; the files behind them are 
 """
 
 from .checks import CheckReport, check_module
-from .core import COLORS, BodyInfo, BodySpec, CableSpec, EditedCore, JointSpec, PhysicsCore, SceneSpec
+from .core import COLORS, BodyInfo, BodySpec, CableSpec, EditedCore, Edits, JointSpec, PhysicsCore, SceneSpec, Weld
 from .errors import (
     AlgebraicLoopError,
     DynabrainError,
@@ -22,15 +22,15 @@ from .errors import (
     WorldClosedError,
 )
 from .history import WorldState
-from .module import Capabilities, Module, Param, Port, SetupContext
+from .module import Capabilities, Module, Param, Port, PortBinding, SetupContext
 from .observers import Observer, WorldEvent, WorldView
 from .structure import Connection
 from .world import World
 
 __all__ = [
     "COLORS", "AlgebraicLoopError", "BodyInfo", "BodySpec", "CableSpec", "Capabilities", "CheckReport",
-    "Connection", "DynabrainError", "EditedCore", "ForkError", "JointSpec", "Module", "ModuleError", "Observer",
-    "Param", "PhysicsCore", "PhysicsDivergedError", "Port", "Problem", "RollbackError", "ScenarioError",
-    "SceneSpec", "SetupContext", "UnitError", "WiringError", "World", "WorldClosedError", "WorldEvent",
-    "WorldState", "WorldView", "check_module",
+    "Connection", "DynabrainError", "EditedCore", "Edits", "ForkError", "JointSpec", "Module", "ModuleError",
+    "Observer", "Param", "PhysicsCore", "PhysicsDivergedError", "Port", "PortBinding", "Problem", "RollbackError",
+    "ScenarioError", "SceneSpec", "SetupContext", "UnitError", "Weld", "WiringError", "World", "WorldClosedError",
+    "WorldEvent", "WorldState", "WorldView", "check_module",
 ]

@@ -26,12 +26,13 @@ from __future__ import annotations
 from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from .errors import DynabrainError
 from .module import Capabilities, Module
+from .portable import state_type
 from .suggest import did_you_mean
 
 SHAPES = ("plane", "box", "sphere", "capsule", "cylinder")
@@ -139,8 +140,44 @@ class BodyInfo:
     geoms: tuple[dict, ...] = ()
 
 
+@state_type
+class Weld(NamedTuple):
+    """A joint made at run time (`PhysicsCore.make_joint`): body ``b`` held rigidly to body ``a`` as
+    they stood when it was made."""
+
+    name: str
+    """The joint's name (unique among the scene's joints and the other welds)."""
+    a: str
+    b: str
+    data: tuple
+    """What the engine needs to make the weld again (the relative pose, in the engine's terms)."""
+
+
+@state_type
+class Edits(NamedTuple):
+    """The structural edits of an `EditedCore`, as one immutable, hashable value (part of its state:
+    history keeps it, a restore compares it, a core caches what it compiled for it)."""
+
+    frozen: tuple = ()
+    """One engine-made entry per frozen object, a NamedTuple whose first field, ``object``, is the
+    object's name (the rest: where its bodies and joints stood when it froze)."""
+    welds: tuple[Weld, ...] = ()
+    """The joints made at run time, in the order they were made."""
+    groups: tuple[tuple[str, ...], ...] = ()
+    """The objects of each `no_collision`, sorted, in the order the calls came."""
+
+
+NO_EDITS = Edits()
+"""The structure of a scene as it was written: nothing frozen, no weld, no collision filter."""
+
+
 class PhysicsCore(Module):
-    """A physics engine as a module with a scene. Not feedthrough: outputs come from its state."""
+    """A physics engine as a module with a scene. Not feedthrough: outputs come from its state.
+
+    An abstract class: a core implements every abstract method below (scene queries and structural
+    edits), or it cannot be made (Python refuses to instantiate it, naming what is missing).
+    Optional hooks have a default: `refresh_outputs`, `_check_param`.
+    """
 
     CAPABILITIES = Capabilities(can_rollback=True, can_fork=True, feedthrough=False)
     ENGINE = "abstract"
@@ -200,6 +237,11 @@ class PhysicsCore(Module):
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
         """Move a free body to a pose at rest (zero velocity)."""
 
+    def refresh_outputs(self) -> None:
+        """Rewrite every output from the current state. The world calls this after an edit that moves
+        bodies between steps (`place`), so the bus shows the new pose before the next step. The
+        default does nothing: right for a core whose edits write their outputs themselves."""
+
     # -- parameters ---------------------------------------------------------------------------------------
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
         spec = self.param_specs().get(name)
@@ -213,29 +255,28 @@ class PhysicsCore(Module):
 
 class EditedCore(PhysicsCore):
     """A physics core whose structural edits are one immutable value, part of its state:
-    ``self._edits = (frozen, welds, groups)``, where ``frozen`` holds one engine-made entry per
-    frozen object (its first item the object's name), ``welds`` one ``(name, a, b, data)`` per joint
-    made at run time and ``groups`` the sorted objects of each `no_collision`. The bookkeeping and
-    the checks live here; an engine says how to freeze an object (`_freeze_entry`), what a weld
-    holds (`_weld_data`) and how to rebuild itself for an edits value (`_edit`). It keeps
-    ``self._rows`` (body name -> row) and answers `objects`, `bodies`, `joints`.
+    ``self._edits``, an `Edits` (frozen objects, welds, collision groups). The bookkeeping and the
+    checks live here; an engine says how to freeze an object (`_freeze_entry`), what a weld holds
+    (`_weld_data`) and how to rebuild itself for an edits value (`_edit`). It keeps ``self._rows``
+    (body name -> row) and answers `objects`, `bodies`, `joints`.
     """
 
-    _edits: tuple
+    _edits: Edits
     _rows: dict[str, int]
 
     # -- engine hooks --------------------------------------------------------------------------------
     @abstractmethod
-    def _edit(self, edits: tuple) -> None:
+    def _edit(self, edits: Edits) -> None:
         """Make ``edits`` the current structure (state carried over)."""
 
     @abstractmethod
     def _freeze_entry(self, obj: str) -> tuple:
-        """What freezing ``obj`` now must remember (its first item: ``obj``)."""
+        """What freezing ``obj`` now must remember: an engine's NamedTuple whose first field,
+        ``object``, is ``obj``."""
 
     @abstractmethod
     def _weld_data(self, a: str, b: str) -> tuple:
-        """What a weld of ``b`` to ``a`` as they stand now must remember."""
+        """What a weld of ``b`` to ``a`` as they stand now must remember (`Weld.data`)."""
 
     @abstractmethod
     def _parent(self, body: str) -> str | None:
@@ -262,15 +303,14 @@ class EditedCore(PhysicsCore):
     # -- the edits ---------------------------------------------------------------------------------------
     @property
     def selection(self) -> tuple[str, ...]:
-        frozen = {entry[0] for entry in self._edits[0]}
+        frozen = {entry.object for entry in self._edits.frozen}
         return tuple(o for o in self.objects() if o not in frozen)
 
     def make(self, objects: Sequence[str]) -> None:
         chosen = self._objects(objects)
-        frozen, welds, groups = self._edits
-        kept = {entry[0]: entry for entry in frozen}
+        kept = {entry.object: entry for entry in self._edits.frozen}
         entries = tuple(kept.get(o) or self._freeze_entry(o) for o in self.objects() if o not in chosen)
-        self._edit((entries, welds, groups))
+        self._edit(self._edits._replace(frozen=entries))
 
     def _objects(self, objects: Sequence[str] | str) -> set[str]:
         known = self.objects()
@@ -292,20 +332,20 @@ class EditedCore(PhysicsCore):
         if a == b:
             raise self.fail(f"make_joint needs two different bodies, got {a!r} twice")
         name = name or f"joint_{a}_{b}"
-        frozen, welds, groups = self._edits
-        if name in {w[0] for w in welds} | self._reserved_joint_names():
+        welds = self._edits.welds
+        if name in {w.name for w in welds} | self._reserved_joint_names():
             raise self.fail(f"a joint named {name!r} exists already")
-        self._edit((frozen, (*welds, (name, a, b, self._weld_data(a, b))), groups))
+        self._edit(self._edits._replace(welds=(*welds, Weld(name, a, b, self._weld_data(a, b)))))
         return name
 
     def remove_joint(self, name: str) -> None:
-        frozen, welds, groups = self._edits
-        made = [w[0] for w in welds]
+        welds = self._edits.welds
+        made = [w.name for w in welds]
         if name not in made:
             if name in self.joints():
                 raise self.fail(f"{name!r} is a joint of the scene; only joints made by make_joint can be removed")
             raise self._unknown("joint made by make_joint", name, made)
-        self._edit((frozen, tuple(w for w in welds if w[0] != name), groups))
+        self._edit(self._edits._replace(welds=tuple(w for w in welds if w.name != name)))
 
     def no_collision(self, objects: Sequence[str]) -> None:
         names: list[str] = []
@@ -315,7 +355,7 @@ class EditedCore(PhysicsCore):
                 names.append(o)
         if len(names) < 2:
             raise self.fail(f"no_collision needs at least two objects, got {names}")
-        frozen, welds, groups = self._edits
+        groups = self._edits.groups
         group = tuple(sorted(names))
         if group not in groups:
-            self._edit((frozen, welds, (*groups, group)))
+            self._edit(self._edits._replace(groups=(*groups, group)))

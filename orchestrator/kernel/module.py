@@ -11,8 +11,10 @@ Lifecycle (the order the world calls a module in; `check_module` verifies it)::
                                        #    once setup has run, for physics cores)
     m.setup(ctx)                       # 3. once, when the module joins a world: resolve targets
                                        #    against the scene, allocate resources, take ctx.rng
-    m.bind()                           # 4. after the world (re)binds the bus: m.inp / m.out are ready;
-                                       #    called again whenever the world's structure changes
+    m.bind_ports(binding)              # 4. the world gives the module its ports on the bus (a
+    m.bind()                           #    `PortBinding`: m.inp / m.out / m.inp_flat / m.out_flat),
+                                       #    then calls `bind`; again whenever the world's structure
+                                       #    changes (the bus is laid out anew)
     m.start(t_ns)                      # 5. initial state at the tick the module joins; writes initial
                                        #    values of every output port
     loop, at ticks where the module is due (every `period` of its own):
@@ -27,9 +29,14 @@ Lifecycle (the order the world calls a module in; `check_module` verifies it)::
     m.close()                          # 8. once, when the world closes (a removed module stays alive
                                        #    while history may bring it back)
 
-Fork: `World.fork` deep-copies every module with one shared memo (so a sensor holding the core
-gets the copied core), unbound. A module holding foreign resources (an engine handle, an FMU
-instance) defines ``__deepcopy__`` to copy them properly, or declares ``can_fork=False``.
+Fork: `World.fork` unbinds every module (``bind_ports(None)``), deep-copies them with one shared
+memo (so a sensor holding the core gets the copied core), binds the originals again and binds the
+copies to the new world. A module holding foreign resources (an engine handle, an FMU instance)
+defines ``__deepcopy__`` to copy them properly (its copy unbound), or declares ``can_fork=False``.
+
+Optional hooks are methods of this class with a documented default (`scenario_spec`,
+`steps_change_state`, ...; a physics core has more, see `PhysicsCore`): the kernel calls them
+directly, never looks them up by name.
 
 Failure policy: an exception from `setup` or `start` refuses the module (the world is unchanged);
 an exception from `step` (or a `PhysicsDivergedError`) rolls the whole world back to the state at
@@ -41,7 +48,8 @@ must copy what it keeps. Randomness comes from `ctx.rng` and its state belongs i
 from __future__ import annotations
 
 import types
-from collections.abc import Mapping, Sequence
+from abc import ABCMeta
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -54,10 +62,6 @@ from .units import parse_quantity
 if TYPE_CHECKING:
     from .core import PhysicsCore
 
-
-PARAM_CHANGES = [0]
-"""Counts every replacement of a module's parameter dict (`Module.set_param`, a rollback's restore):
-history keeps the dicts of all modules as one tuple and builds a new one only after a change."""
 
 NO_PORTS = np.zeros(0)  # what `Module.inp_flat` and `out_flat` are while a module is not bound
 NO_PORTS.setflags(write=False)
@@ -172,8 +176,32 @@ class SetupContext:
     extras: dict[str, Any] = field(default_factory=dict)
 
 
-class Module:
-    """Base class of every module. See the module docstring for the lifecycle."""
+@dataclass(frozen=True, eq=False)
+class PortBinding:
+    """What a world gives a module when it binds it (`Module.bind_ports`): views of its ports on the
+    world's bus, and whom to tell when its parameters change. The views stay valid until the world
+    binds the module again (a change of structure lays the bus out anew)."""
+
+    inp: Mapping[str, np.ndarray]
+    """Input name -> read-only view of its slot (shape of the port)."""
+    out: Mapping[str, np.ndarray]
+    """Output name -> writable view of its slot (shape of the port)."""
+    inp_flat: np.ndarray = field(default_factory=lambda: NO_PORTS)
+    """Every input (in the order `Module.inputs` declares them) as one flat, read-only float64 array."""
+    out_flat: np.ndarray = field(default_factory=lambda: NO_PORTS)
+    """The module's own outputs (not the ``view_of`` ports), in declaration order, as one flat
+    float64 array."""
+    param_changed: Callable[[Module], None] | None = None
+    """Called with the module after each change of its parameters (`Module.set_param`, a restore):
+    the world that bound it then records the new values in the states it saves from then on."""
+
+
+class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook has a default
+    """Base class of every module. See the module docstring for the lifecycle.
+
+    An abstract base class with no abstract method: every hook has a documented default, and a
+    subclass overrides what it needs (a physics core must implement `PhysicsCore`'s abstract
+    methods, and cannot be made without them)."""
 
     PARAMS: ClassVar[tuple[Param, ...]] = ()
     CAPABILITIES: ClassVar[Capabilities] = Capabilities()
@@ -186,24 +214,41 @@ class Module:
         self.name = name
         self.targets: tuple[str, ...] = tuple(targets)
         self._param_values: dict[str, Any] = self._resolve_params(params)
-        self._drop_ports()
-
-    def _drop_ports(self) -> tuple:
-        """Unbind the ports (for a copy, or before a world binds them); returns what was bound."""
-        bound = (self.inp, self.out, self.inp_flat, self.out_flat) if hasattr(self, "inp") else None
+        self._param_version = 0
+        self._binding: PortBinding | None = None
         self.inp: Mapping[str, np.ndarray] = {}
+        """Input name -> a read-only view of its slot on the bus (empty while unbound)."""
         self.out: Mapping[str, np.ndarray] = {}
+        """Output name -> a writable view of its slot on the bus (empty while unbound)."""
         self.inp_flat: np.ndarray = NO_PORTS
         """Every input (in the order `inputs` declares them) as one flat, read-only float64 array."""
         self.out_flat: np.ndarray = NO_PORTS
         """All of this module's own outputs (not the ``view_of`` ports) as one flat float64 array, in
         the order `outputs` declares them: a module with many small outputs writes them all with one
         assignment (``self.out_flat[:] = values``)."""
-        return bound
 
-    def _take_ports(self, bound: tuple) -> None:
-        """Bind the ports (the world does, then calls `bind`)."""
-        self.inp, self.out, self.inp_flat, self.out_flat = bound
+    # -- ports on the bus -----------------------------------------------------------------------
+    @property
+    def binding(self) -> PortBinding | None:
+        """How the module is bound now (None while unbound)."""
+        return self._binding
+
+    def bind_ports(self, binding: PortBinding | None) -> PortBinding | None:
+        """Take the ports of ``binding`` (``inp``, ``out``, ``inp_flat``, ``out_flat``), or drop them
+        when it is None (then ``inp`` and ``out`` are empty and the flat arrays have no element);
+        returns the binding that was in place. The world calls this, then `bind` (see the lifecycle
+        in the module docstring); a copy of a module (``__deepcopy__``) unbinds itself with
+        ``bind_ports(None)``. Rebinding costs nothing at step time: the ports are plain attributes."""
+        if binding is not None and not isinstance(binding, PortBinding):
+            raise DynabrainError(f"module {self.name!r}: bind_ports takes a PortBinding or None, "
+                                 f"got {type(binding).__name__}")
+        previous, self._binding = self._binding, binding
+        if binding is None:
+            self.inp, self.out, self.inp_flat, self.out_flat = {}, {}, NO_PORTS, NO_PORTS
+        else:
+            self.inp, self.out = binding.inp, binding.out
+            self.inp_flat, self.out_flat = binding.inp_flat, binding.out_flat
+        return previous
 
     # -- parameters -----------------------------------------------------------------------------
     @classmethod
@@ -233,8 +278,22 @@ class Module:
         """Current parameter values (read-only; change them through `World.set`)."""
         return types.MappingProxyType(self._param_values)
 
+    @property
+    def param_version(self) -> int:
+        """How many times this module's parameters have changed (`set_param`, a restore that brought
+        other values back): two readings differ exactly when a change happened in between."""
+        return self._param_version
+
+    def _params_changed(self) -> None:
+        self._param_version += 1
+        binding = self._binding
+        if binding is not None and binding.param_changed is not None:
+            binding.param_changed(self)
+
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
-        """Change a parameter (the world calls this; it records the change in history)."""
+        """Change a parameter. `World.set` calls this (and checks the name first); a module bound in a
+        world tells it through its binding (`PortBinding.param_changed`), so the world's history
+        records the new value from this tick on."""
         specs = self.param_specs()
         if name not in specs:
             raise DynabrainError(f"module {self.name!r} has no parameter {name!r}" + did_you_mean(name, specs))
@@ -245,7 +304,7 @@ class Module:
         updated = dict(self._param_values)  # copy-on-write: history keeps the old dict
         updated[name] = converted
         self._param_values = updated
-        PARAM_CHANGES[0] += 1
+        self._params_changed()
         self.on_param(name, converted)
 
     def _restore_params(self, values: dict[str, Any]) -> None:
@@ -253,12 +312,13 @@ class Module:
             return
         old = self._param_values
         self._param_values = values
-        PARAM_CHANGES[0] += 1
+        self._params_changed()
         for key, value in values.items():
             if old.get(key) is not value:
                 self.on_param(key, value)
 
     # -- the contract ---------------------------------------------------------------------------
+    # (the hooks that do nothing by default are so on purpose, not abstract: noqa B027)
     def inputs(self) -> Sequence[Port]:
         """Input ports."""
         return ()
@@ -267,23 +327,23 @@ class Module:
         """Output ports."""
         return ()
 
-    def setup(self, ctx: SetupContext) -> None:
+    def setup(self, ctx: SetupContext) -> None:  # noqa: B027
         """Join a world: resolve targets, allocate resources. Called once per world."""
 
-    def bind(self) -> None:
+    def bind(self) -> None:  # noqa: B027
         """``self.inp`` / ``self.out`` (and their flat forms) were (re)bound; refresh any cached views of them."""
 
-    def start(self, t_ns: int) -> None:
+    def start(self, t_ns: int) -> None:  # noqa: B027
         """Initial state at the joining tick; write every output's initial value."""
 
-    def step(self, t_ns: int, dt_ns: int) -> None:
+    def step(self, t_ns: int, dt_ns: int) -> None:  # noqa: B027
         """Advance from ``t_ns`` to ``t_ns + dt_ns``."""
 
     def get_state(self) -> Any:
         """The module's state, as a value the module will not mutate later."""
         return None
 
-    def set_state(self, state: Any) -> None:
+    def set_state(self, state: Any) -> None:  # noqa: B027
         """Take back a state returned by `get_state` (copy what you keep)."""
 
     def steps_change_state(self) -> bool:
@@ -295,11 +355,19 @@ class Module:
         called between ticks) changes its state meanwhile. True, the default, is always correct."""
         return True
 
-    def on_param(self, name: str, value: Any) -> None:
+    def on_param(self, name: str, value: Any) -> None:  # noqa: B027
         """A run-time parameter changed to ``value``; apply it."""
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027
         """Release resources. Called once."""
+
+    def scenario_spec(self) -> dict[str, Any]:
+        """The scenario syntax that makes this module again (logs, replay, the bridge), parameters in
+        SI; the world adds the period, targets and connections. By default the Python class path; a
+        module not made from one (an FMU) says how it is made."""
+        params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.params.items()}
+        return {"name": self.name, "python": f"{type(self).__module__}:{type(self).__qualname__}",
+                "params": params}
 
     def describe(self) -> dict[str, Any]:
         """A plain description (for `dynabrain check`, logs and the bridge)."""
