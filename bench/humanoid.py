@@ -70,7 +70,7 @@ class RawLoop:
 
     def __init__(self, world: World):
         core, servo = world.core, world.modules["servo"]
-        self.m = copy.deepcopy(core._s.model)  # the very model the core compiled (options, contacts)
+        self.m = copy.deepcopy(core.mj.model)  # the very model the core compiled (options, contacts)
         self.d = mujoco.MjData(self.m)
         mujoco.mj_setState(self.m, self.d, core.get_state()[1], STATE)
         m = self.m

@@ -136,7 +136,7 @@ class ZmpSensor(Module):
 
     def step(self, t_ns: int, dt_ns: int) -> None:
         link = self._link
-        if link.core._s is not link._seen:
+        if link.core.mj is not link.seen:  # the core switched model: find the ids again
             link.changed()
             self._resolve()
         p = self._param_values

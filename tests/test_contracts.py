@@ -1,11 +1,13 @@
 """The contracts are explicit: the module and core base classes are abstract base classes whose
 abstract methods are enforced, optional hooks are declared methods with defaults, ports are bound
 through `Module.bind_ports` and a `PortBinding`, parameter changes belong to the world a module is in,
-and a core's structural edits are named, immutable values. Physics runs for real (MuJoCo stepping), no fakes."""
+the MuJoCo core hands its model and data out through `MujocoCore.mj`, and a core's structural edits
+are named, immutable values. Physics runs for real (MuJoCo stepping), no fakes."""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import pickle
 from collections.abc import Sequence
 
@@ -13,7 +15,7 @@ import numpy as np
 import pytest
 
 from dynabrain.modules.basic import Counter
-from dynabrain.modules.mujoco.core import MujocoCore
+from dynabrain.modules.mujoco.core import MujocoCore, MujocoView
 from dynabrain.modules.mujoco.scene import FrozenBody, FrozenObject
 from dynabrain.orchestrator.kernel.core import (
     NO_EDITS,
@@ -252,6 +254,47 @@ def test_a_parameter_changed_without_world_set_is_still_recorded_by_its_world():
         assert world.get("steady.y") == 5.0 and world.history.top.params[1]["gain"] == 5.0
         world.backtick(5)  # the state of tick 10 was saved before the change
         assert world.get("steady.gain") == 1.0 and steady.param_version == version + 2
+
+
+# -- the MuJoCo core's view ---------------------------------------------------------------------------------
+def test_the_mujoco_view_changes_when_the_core_recompiles():
+    with physics_world("w") as world:
+        core = world.core
+        first = core.mj
+        assert isinstance(first, MujocoView) and first.edits == NO_EDITS
+        assert first.model.nbody == 5 and first.data.qpos.size == 7 + 7 + 1
+        world.tick(20)
+        assert core.mj is first  # stepping keeps the compiled model
+        world.make(["a", "arm"])  # the state of tick 20 is saved again with this edit
+        selected = core.mj
+        assert selected is not first and selected.model.nv == 6 + 1  # box a's free joint and the hinge
+        assert selected.edits == core.get_state()[0]
+        world.tick(10)
+        world.make_joint("a", "floor")  # ... and that of tick 30 with this one
+        welded = core.mj
+        assert welded is not selected and welded.model.neq == 1
+        world.tick(10)
+        world.backtick(11)  # to tick 29, before the weld: the cached model of the selection again
+        assert core.mj is selected
+        world.backtick(10)  # to tick 19, before the selection
+        assert core.mj is first
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            core.mj.model = selected.model
+
+
+def test_a_forked_core_has_a_view_of_its_own():
+    with physics_world("w") as world:
+        world.make(["a", "b"])
+        world.tick(10)
+        fork = world.fork()
+        try:
+            assert fork.core.mj is not world.core.mj and fork.core.mj.data is not world.core.mj.data
+            assert fork.core.mj.edits == world.core.mj.edits
+            fork.tick(10)
+            world.tick(10)
+            assert np.array_equal(fork.core.mj.data.qpos, world.core.mj.data.qpos)
+        finally:
+            fork.close()
 
 
 # -- structural edits are named values ------------------------------------------------------------------------

@@ -72,7 +72,7 @@ def test_make_freezes_the_others_where_they_stand():
     hover = out["hover.pos"].copy()
     core.make(["top"])
     assert core.selection == ("top",)
-    assert core._s.model.nv == 6  # only the selected box has degrees of freedom
+    assert core.mj.model.nv == 6  # only the selected box has degrees of freedom
     run(core, 500)
     assert np.array_equal(out["hover.pos"], hover)  # frozen in the air, not falling
     assert np.all(out["hover.linvel"] == 0.0)

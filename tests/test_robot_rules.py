@@ -120,7 +120,7 @@ def breakout_world(history: int = 3000) -> World:
 
 def test_a_block_disappears_after_the_ball_bounces_off_it_and_comes_back_on_rollback():
     world = breakout_world()
-    model = lambda: world.core._s.model  # noqa: E731 - the core's current compiled model
+    model = lambda: world.core.mj.model  # noqa: E731 - the core's current compiled model
     n = 0
     while world.get("rules.remaining") == 18:
         world.tick()
@@ -144,8 +144,8 @@ def test_the_player_wins_the_game():
     world = breakout_world(history=10)
     world.tick(round(25 / 0.002))
     assert world.get("rules.won") == 1 and world.get("rules.hits") == 18
-    assert all(model_alpha == 0 for model_alpha in world.core._s.model.geom_rgba[
-        [world.core._s.model.geom(b).id for b in world.modules["rules"].blocks], 3])
+    assert all(model_alpha == 0 for model_alpha in world.core.mj.model.geom_rgba[
+        [world.core.mj.model.geom(b).id for b in world.modules["rules"].blocks], 3])
     world.close()
 
 

@@ -82,14 +82,14 @@ def test_ankle_force_sensors_carry_the_weight_above_them_and_the_imu_reads_g():
     world = standing(lf=ForceSensor("lf", targets=["l_foot_ft"]), rf=ForceSensor("rf", targets=["r_foot_ft"]),
                      imu=Accelerometer("imu", targets=["imu"]), gyro=Gyro("gyro", targets=["imu"]),
                      wrist=ForceSensor("wrist", targets=["l_hand_ft"]))
-    m = world.core._s.model
+    m = world.core.mj.model
     feet = m.body_mass[m.body("l_foot").id] + m.body_mass[m.body("r_foot").id]
     above = m.body_subtreemass[m.body("pelvis").id] - feet
     weight = above * 9.81
     fz = world.get("lf.force")[2] + world.get("rf.force")[2]
     assert -fz == pytest.approx(weight, rel=0.002)
     assert world.get("lf.force")[2] == pytest.approx(world.get("rf.force")[2], rel=0.02)  # a symmetric stance
-    d, hand = world.core._s.data, m.body("l_hand").id
+    d, hand = world.core.mj.data, m.body("l_hand").id
     weight = np.array([0, 0, -9.81 * m.body_mass[hand]])  # a hanging hand: its weight, and its moment
     lever = d.xipos[hand] - d.site_xpos[m.site("l_hand_ft").id]
     assert np.linalg.norm(world.get("wrist.force")) == pytest.approx(np.linalg.norm(weight), rel=0.01)
@@ -105,12 +105,12 @@ def test_ankle_force_sensors_carry_the_weight_above_them_and_the_imu_reads_g():
                                           "r_ankle_roll": -6, "waist_yaw": 20}])
 def test_zmp_of_a_static_stance_is_the_projection_of_the_centre_of_mass(pose):
     world = standing(pose, settle=2.5, zmp=ZmpSensor("zmp", targets=["l_foot", "r_foot"]))
-    com = world.core._s.data.subtree_com[world.core._s.model.body("pelvis").id]
+    com = world.core.mj.data.subtree_com[world.core.mj.model.body("pelvis").id]
     zmp = world.get("zmp.zmp")
     assert np.hypot(*(zmp[:2] - com[:2])) < 1e-3, (zmp, com)
     assert world.get("zmp.inside") == 1.0 and world.get("zmp.margin") > 0.01
     forces = world.get("zmp.force")
-    assert forces.sum() == pytest.approx(world.core._s.model.body_subtreemass[1] * 9.81, rel=0.002)
+    assert forces.sum() == pytest.approx(world.core.mj.model.body_subtreemass[1] * 9.81, rel=0.002)
     cops = world.get("zmp.cop")  # each foot's centre of pressure lies under that foot
     assert cops[0][1] > 0.0 > cops[1][1]
     world.close()
@@ -122,7 +122,7 @@ def test_zmp_of_a_swaying_robot_equals_the_pressure_centre_of_mujocos_contact_fo
     list with mj_contactForce: taken after a full mj_step, both describe the same contacts."""
     world = standing(zmp=ZmpSensor("zmp", targets=["l_foot", "r_foot"]), settle=1.0)
     zmp, core = world.modules["zmp"], world.core
-    m, d = core._s.model, mujoco.MjData(core._s.model)
+    m, d = core.mj.model, mujoco.MjData(core.mj.model)
     mujoco.mj_setState(m, d, core.get_state()[1], STATE)
     foot_of = {g: k for k, foot in enumerate(("l_foot", "r_foot")) for g in range(m.ngeom)
                if _under(m, int(m.geom_bodyid[g]), m.body(foot).id)}
@@ -159,9 +159,9 @@ def _under(m: mujoco.MjModel, body: int, ancestor: int) -> bool:
 
 def test_zmp_follows_a_structure_switch_and_reads_nan_in_the_air():
     world = standing(zmp=ZmpSensor("zmp", targets=["l_foot", "r_foot"]), settle=1.0)
-    before = world.core._s.model
+    before = world.core.mj.model
     world.no_collision(["l_hand", "r_hand"])  # an edit: the core recompiles its model, ids may move
-    assert world.core._s.model is not before
+    assert world.core.mj.model is not before
     world.tick(5)
     assert world.get("zmp.inside") == 1.0 and world.get("zmp.margin") > 0.03
     world.place("pelvis", [0, 0, 1.0])  # lift the robot: no foot is loaded

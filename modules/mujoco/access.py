@@ -2,17 +2,19 @@
 
 Most modules should talk to the physics core through the bus (``core.<joint>.q``, ``core.sensor.<name>``,
 ``core.<body>.pos``). Some need what the bus does not carry: MuJoCo's native sensors located by
-site, the contact list, a body's geoms. They go through a `MujocoLink`, the one place that knows the
-core's private structure, so that the rest of the module speaks names, not MuJoCo ids.
+site, the contact list, a body's geoms. They go through a `MujocoLink`, which reads the core's
+model and data through its public view (`MujocoCore.mj`) and turns names into MuJoCo ids, so that the
+rest of the module speaks names.
 
 Contract of a link:
 
 - ``MujocoLink(module, core, field)`` refuses a world without a core or with another engine, naming
   the module and the engine (``field`` is the scenario field the module's targets come from);
-- ``model`` / ``data`` are the core's *current* compiled structure: a scene edit (`make`,
-  `make_joint`, `no_collision`) or a rollback across one switches the core to another compiled model,
-  where ids differ. A module resolves its ids in a function of the model and calls
-  ``link.changed()`` at the top of its step (one identity check) to re-resolve when needed;
+- ``model`` / ``data`` are those of the core's *current* compiled model (``core.mj``, a
+  `MujocoView`): a scene edit (`make`, `make_joint`, `no_collision`) or a rollback across one switches
+  the core to another compiled model, where ids differ. A module resolves its ids in a function of the
+  model and calls ``link.changed()`` at the top of its step (one identity check) to re-resolve when
+  needed;
 - what a module reads is the physics as it is when the module steps: the state at the start of the
   tick when the module steps before the core (the usual case, when its outputs lead to the core's
   inputs: the same latency as a signal read from the core over the bus), the state after the core's
@@ -30,13 +32,18 @@ from __future__ import annotations
 import copy
 import fnmatch
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
 
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
+
+if TYPE_CHECKING:
+    from dynabrain.orchestrator.kernel.core import PhysicsCore
+
+    from .core import MujocoView
 
 _OBJ = mujoco.mjtObj
 _HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
@@ -51,35 +58,36 @@ def fail(module: str, field: str, message: str) -> DynabrainError:
 class MujocoLink:
     """A module's read access to the MuJoCo core (see the module docstring for the contract)."""
 
-    def __init__(self, module: str, core: Any, field: str = "targets"):
+    def __init__(self, module: str, core: PhysicsCore | None, field: str = "targets"):
         if core is None:
             raise fail(module, field, "needs a physics core, and this world has none")
-        engine = getattr(core, "ENGINE", "?")
+        engine = core.ENGINE
         if engine != "mujoco":
             raise fail(module, field, f"needs the mujoco core; this world's core {core.name!r} is {engine!r}")
         self.module, self.field, self.core = module, field, core
-        self._seen: Any = None
+        self.seen: MujocoView | None = None
+        """The core's view the module last resolved its ids against (`changed` updates it)."""
 
     @property
     def model(self) -> mujoco.MjModel:
-        return self.core._s.model
+        return self.core.mj.model
 
     @property
     def data(self) -> mujoco.MjData:
-        return self.core._s.data
+        return self.core.mj.data
 
     def changed(self) -> bool:
-        """True once after the core switched to another compiled structure (and at the first call)."""
-        s = self.core._s
-        if s is self._seen:
+        """True once after the core switched to another compiled model (and at the first call)."""
+        view = self.core.mj
+        if view is self.seen:
             return False
-        self._seen = s
+        self.seen = view
         return True
 
     def __deepcopy__(self, memo: dict) -> MujocoLink:
         twin = copy.copy(self)
         twin.core = copy.deepcopy(self.core, memo)
-        twin._seen = None
+        twin.seen = None
         return twin
 
     # -- names --------------------------------------------------------------------------------------------

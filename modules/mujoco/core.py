@@ -18,16 +18,20 @@ Choices (see also `mujoco.scene`):
   declared in the order of the MuJoCo arrays they come from, so a step writes them all with five
   memory copies (poses, joints, and one run of sensordata for the sensors and the velocities);
 - structural edits (`make`, `make_joint`, `no_collision`) recompile the model (`mujoco.scene`);
-  each compiled structure is cached by its edits, so a rollback across an edit costs a dictionary
-  look-up. The state is ``(edits, integration state array, sensor values)`` (see `STATE`).
+  each compiled model (a `CompiledScene`) is cached by its edits, so a rollback across an edit costs
+  a dictionary look-up. The state is ``(edits, integration state array, sensor values)`` (see `STATE`);
+- modules that need MuJoCo's own model and data (native sensors, contacts) read them through
+  `MujocoCore.mj` (a `MujocoView`), through `mujoco.access.MujocoLink`.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
+import operator
 from collections import OrderedDict
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import mujoco
@@ -75,77 +79,119 @@ def _move(dst: np.ndarray, di, src: np.ndarray, si) -> tuple:
     return (dst, di, src, si)
 
 
-class _Structure:
-    """One compiled structure: model, data, and its maps onto the core's fixed port layout. Maps are
-    flat indices into C-ordered blocks: a slice where the rows are contiguous, else an index array."""
+@dataclass(frozen=True, eq=False)
+class MujocoView:
+    """Read access to the MuJoCo model and data the core simulates now (`MujocoCore.mj`), for modules
+    that need what the bus does not carry (native sensors by site, contacts, geoms).
+
+    A structural edit (`make`, `make_joint`, `no_collision`) or a restore across one switches the core
+    to another compiled model, where ids differ; each compiled model has its own view, so a module
+    keeps the view it resolved its ids against and compares it with ``core.mj is not seen`` (one
+    identity check) to know when to resolve them again. Read only: what a module writes into
+    ``model`` or ``data`` is not part of any state and a rollback does not undo it.
+    """
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    edits: Edits
+    """The structure this model was compiled for."""
+
+
+class CompiledScene:
+    """One compiled structure of the core: the MuJoCo model and data for one `Edits` value, and
+    where each value of the core's fixed port layout (`mujoco.scene.Layout`) comes from in them.
+
+    Index attributes are flat positions into C-ordered arrays: ``*_rows`` into the core's port
+    blocks (``body_pos`` (n, 3) as 3n values ...), ``*_src`` and ``*_adr`` into MuJoCo's arrays; each
+    is a slice where the positions are contiguous (a cheaper copy), else an index array.
+    """
 
     def __init__(self, layout: ms.Layout, edits: Edits, model: mujoco.MjModel, movers: tuple,
                  friction: dict, data: mujoco.MjData | None = None):
-        self.edits, self.model, self.movers, self.friction = edits, model, movers, friction
+        self.edits = edits  # the structure compiled here
+        self.model = model
+        self.movers = movers  # the bodies that move (not fused, not static), in model order
+        self.friction = friction  # geom name -> its own sliding friction (the scene's per-body values)
         self.data = d = data if data is not None else mujoco.MjData(model)
-        self.xpos, self.xquat = d.xpos.reshape(-1), d.xquat.reshape(-1)
+        self.view = MujocoView(model, d, edits)  # what `MujocoCore.mj` hands out while this is current
+        self.xpos_flat, self.xquat_flat = d.xpos.reshape(-1), d.xquat.reshape(-1)  # body poses, flat
         self.qpos, self.qvel, self.sensordata = d.qpos, d.qvel, d.sensordata
-        self.ctrl, self.qfrc = d.ctrl, d.qfrc_applied
-        self.nstate = mujoco.mj_stateSize(model, STATE)
+        self.ctrl, self.qfrc_applied = d.ctrl, d.qfrc_applied  # where the inputs go
+        self.state_size = mujoco.mj_stateSize(model, STATE)  # values in a saved integration state
         w = mujoco.mjtWarning
-        self.warns = tuple((what, d.warning[int(k)]) for what, k in (
+        # MuJoCo's counters of bad numbers (NaN, inf, |x| > 1e10): (what, counter), the worst first
+        self.warnings = tuple((what, d.warning[int(k)]) for what, k in (
             ("acceleration", w.mjWARN_BADQACC), ("velocity", w.mjWARN_BADQVEL), ("position", w.mjWARN_BADQPOS)))
-        self.warn_acc, self.warn_vel, self.warn_pos = (x[1] for x in self.warns)
-        self.warn_counts = [x[1].number for x in self.warns]
-        self.warn_seen = sum(self.warn_counts)
-        self.body_id = {model.body(i).name: i for i in range(1, model.nbody)}
+        self.bad_qacc, self.bad_qvel, self.bad_qpos = (x[1] for x in self.warnings)
+        self.warning_counts = [x[1].number for x in self.warnings]  # each counter as of the last check
+        self.warnings_seen = sum(self.warning_counts)  # their sum (a step compares the sum)
+        self.body_id = {model.body(i).name: i for i in range(1, model.nbody)}  # body name -> MuJoCo id
+        # joint name -> where its values lie in qpos and qvel
         self.joint_slices = {model.joint(j).name: ms.joint_slice(model, j) for j in range(model.njnt)}
-        self.welds = np.array([model.equality(w.name).id for w in edits.welds], dtype=int)
-        self.geom_friction = np.array([friction.get(model.geom(g).name, np.nan) for g in range(model.ngeom)])
+        self.weld_ids = np.array([model.equality(w.name).id for w in edits.welds], dtype=int)  # their equalities
+        # each geom's own sliding friction, NaN for those that take the core's `friction` parameter
+        self.geom_own_friction = np.array([friction.get(model.geom(g).name, np.nan) for g in range(model.ngeom)])
         self._map_bodies(layout, edits)
         self._map_joints(layout, edits)
         self._map_actuators_sensors(layout)
 
-    def clone(self, layout: ms.Layout) -> _Structure:
-        return _Structure(layout, self.edits, copy.deepcopy(self.model), self.movers, self.friction,
-                          copy.deepcopy(self.data))
+    def clone(self, layout: ms.Layout) -> CompiledScene:
+        return CompiledScene(layout, self.edits, copy.deepcopy(self.model), self.movers, self.friction,
+                             copy.deepcopy(self.data))
 
-    def _map_bodies(self, layout: ms.Layout, edits: tuple) -> None:
+    def _map_bodies(self, layout: ms.Layout, edits: Edits) -> None:
         row = {b: r for r, b in enumerate(layout.bodies)}
         present = [b for b in layout.bodies if b in self.body_id]
         pairs = [(row[b], self.body_id[b]) for b in present]
-        self.all3, self.all_id3, self.all4, self.all_id4 = ms.pose_index(pairs)
-        self.mv3, self.mv_id3, self.mv4, self.mv_id4 = ms.pose_index([(row[b], self.body_id[b]) for b in self.movers])
+        # every body present in the model: its rows in body_pos / body_quat, its values in xpos / xquat
+        self.pos_rows, self.pos_src, self.quat_rows, self.quat_src = ms.pose_index(pairs)
+        # the same for the moving bodies only (what a step rewrites)
+        (self.moving_pos_rows, self.moving_pos_src, self.moving_quat_rows,
+         self.moving_quat_src) = ms.pose_index([(row[b], self.body_id[b]) for b in self.movers])
         moving = set(self.movers)
-        self.still3 = ms.flat_index([r for r, b in enumerate(layout.bodies) if b not in moving], 3)
+        # rows in body_linvel / body_angvel of the bodies that do not move (their velocity is 0)
+        self.still_rows = ms.flat_index([r for r, b in enumerate(layout.bodies) if b not in moving], 3)
         world = {b.name: b.in_world for entry in edits.frozen for b in entry.bodies}
-        fused = [b for b in layout.bodies if b not in self.body_id]
-        self.fused3, self.fused4 = (ms.flat_index([row[b] for b in fused], k) for k in (3, 4))
-        self.fused_pose = {b: world[b] for b in fused}
+        fused = [b for b in layout.bodies if b not in self.body_id]  # frozen, fused into the world
+        # rows of the fused bodies in body_pos / body_quat, and the poses they stay at
+        self.fused_pos_rows, self.fused_quat_rows = (ms.flat_index([row[b] for b in fused], k) for k in (3, 4))
+        self.fused_pose = {b: world[b] for b in fused}  # body -> world pose (x, y, z, qw, qx, qy, qz)
         self.fused_pos = np.array([world[b][:3] for b in fused]).reshape(-1)
         self.fused_quat = np.array([world[b][3:] for b in fused]).reshape(-1)
         n = len(self.movers)
         start = int(self.model.sensor_adr[self.model.sensor(f"{ms.VEL_PREFIX}lin_{self.movers[0]}").id]) if n else 0
-        self.lin, self.ang = slice(start, start + 3 * n), slice(start + 3 * n, start + 6 * n)
+        # the moving bodies' velocities in sensordata (the core's frame-velocity sensors, in mover order)
+        self.linvel_src, self.angvel_src = slice(start, start + 3 * n), slice(start + 3 * n, start + 6 * n)
 
-    def _map_joints(self, layout: ms.Layout, edits: tuple) -> None:
+    def _map_joints(self, layout: ms.Layout, edits: Edits) -> None:
         frozen = {j: v for entry in edits.frozen for j, v in entry.joints}
         kept = [(r, self.joint_slices[j]) for r, j in enumerate(layout.qjoints) if j in self.joint_slices]
-        self.njoint = len(kept)
-        self.jrows = ms.flat_index([r for r, _ in kept], 1)
-        self.qadr, self.dadr = (ms.flat_index([js[k] for _, js in kept], 1) for k in (0, 2))
+        self.n_joints = len(kept)  # hinge and slide joints of the layout present in the model
+        self.joint_rows = ms.flat_index([r for r, _ in kept], 1)  # their rows in joint_q / joint_qd / joint_force
+        # ... and their values in qpos, and in qvel and qfrc_applied
+        self.joint_qpos_adr, self.joint_dof_adr = (ms.flat_index([js.qpos_adr for _, js in kept], 1),
+                                                    ms.flat_index([js.dof_adr for _, js in kept], 1))
         gone = [r for r, j in enumerate(layout.qjoints) if j not in self.joint_slices]
-        self.frozen_jrows = ms.flat_index(gone, 1)
-        self.frozen_q = np.array([frozen[layout.qjoints[r]][0] for r in gone])
+        self.frozen_joint_rows = ms.flat_index(gone, 1)  # rows of the joints of frozen objects
+        self.frozen_q = np.array([frozen[layout.qjoints[r]][0] for r in gone])  # ... and their values
 
     def _map_actuators_sensors(self, layout: ms.Layout) -> None:
         m = self.model
         index = {a: i for i, a in enumerate(layout.actuators)}
-        self.act_src = ms.flat_index([index[m.actuator(a).name] for a in range(m.nu)], 1)
+        # for each actuator of the model (MuJoCo order), its row in the ctrl input block
+        self.ctrl_rows = ms.flat_index([index[m.actuator(a).name] for a in range(m.nu)], 1)
         sensors = {m.sensor(s).name: s for s in range(m.nsensor)}
         rows, src = [], []
         for name, dim, adr in layout.sensors:
             if name in sensors:
                 rows.extend(range(adr, adr + dim))
                 src.extend(range(int(m.sensor_adr[sensors[name]]), int(m.sensor_adr[sensors[name]]) + dim))
-        self.nsens, self.sens_rows, self.sens_src = len(rows), ms.flat_index(rows, 1), ms.flat_index(src, 1)
+        self.n_sensor_values = len(rows)  # values of the layout's sensors present in the model
+        self.sensor_rows = ms.flat_index(rows, 1)  # ... their positions in the sensordata output
+        self.sensor_src = ms.flat_index(src, 1)  # ... and in data.sensordata
         ours = ms.VEL_PREFIX
-        self.user_sd = sum(int(m.sensor_dim[s]) for n, s in sensors.items() if not n.startswith(ours))
+        # values of the model's own sensors, at the start of sensordata (the core's velocity sensors follow)
+        self.n_model_sensordata = sum(int(m.sensor_dim[s]) for n, s in sensors.items() if not n.startswith(ours))
 
 
 class MujocoCore(EditedCore):
@@ -170,11 +216,11 @@ class MujocoCore(EditedCore):
         model, movers = ms.build_structure(name, self._source, NO_EDITS)
         self._layout = ms.make_layout(model)
         self._rows = {b: i for i, b in enumerate(self._layout.bodies)}
-        self._cache: OrderedDict[tuple, _Structure] = OrderedDict()
-        self._s = self._remember(_Structure(self._layout, NO_EDITS, model, movers, self._friction))
+        self._cache: OrderedDict[Edits, CompiledScene] = OrderedDict()
+        self._use(self._remember(CompiledScene(self._layout, NO_EDITS, model, movers, self._friction)))
         self._edits = NO_EDITS
-        self._apply_params(self._s)
-        mujoco.mj_forward(model, self._s.data)
+        self._apply_params(self._compiled)
+        mujoco.mj_forward(model, self._compiled.data)
         self._ports_in, self._ports_out = self._make_ports()
         self._unbind()
 
@@ -256,14 +302,14 @@ class MujocoCore(EditedCore):
     # -- lifecycle --------------------------------------------------------------------------------------------
     def setup(self, ctx: SetupContext) -> None:
         self._period = ctx.period_ns * 1e-9
-        self._apply_params(self._s)
-        mujoco.mj_forward(self._s.model, self._s.data)
+        self._apply_params(self._compiled)
+        mujoco.mj_forward(self._compiled.model, self._compiled.data)
 
     def start(self, t_ns: int) -> None:
         self._write_all()
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        s = self._s
+        s = self._compiled
         moves = self._moves
         if moves is None or moves[0] is not s:
             moves = self._moves = (s, *self._plan_moves(s))
@@ -273,24 +319,24 @@ class MujocoCore(EditedCore):
         if self._nsub > 1:
             mujoco.mj_step(s.model, s.data, self._nsub - 1)
         mujoco.mj_step1(s.model, s.data)
-        bad = s.warn_pos.number + s.warn_vel.number + s.warn_acc.number
-        if bad != s.warn_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
+        bad = s.bad_qpos.number + s.bad_qvel.number + s.bad_qacc.number
+        if bad != s.warnings_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
             raise PhysicsDivergedError(self.name, "step", None, self._divergence(s, bad))
         for dst, di, src, si in moves[2]:  # the outputs that can change in a step (`_write_outputs`)
             dst[di] = src[si]
 
     def get_state(self) -> tuple:
-        s = self._s
-        arr = np.empty(s.nstate)
+        s = self._compiled
+        arr = np.empty(s.state_size)
         mujoco.mj_getState(s.model, s.data, arr, STATE)
-        sensors = s.sensordata[:s.user_sd].copy() if s.user_sd else None
+        sensors = s.sensordata[:s.n_model_sensordata].copy() if s.n_model_sensordata else None
         return (self._edits, arr, sensors)
 
     def set_state(self, state: tuple) -> None:
         edits, arr, sensors = state
         if edits is not self._edits and edits != self._edits:
             self._activate(edits, carry=False)
-        s = self._s
+        s = self._compiled
         mujoco.mj_setState(s.model, s.data, np.asarray(arr, dtype=np.float64), STATE)
         mujoco.mj_step1(s.model, s.data)
         if sensors is not None:
@@ -299,7 +345,7 @@ class MujocoCore(EditedCore):
 
     def on_param(self, name: str, value: Any) -> None:
         self._check_param(name, value)
-        s = self._s
+        s = self._compiled
         self._apply_params(s)
         # the data is kept after mj_step1, computed with the old values (gravity's bias forces, the
         # contacts' friction and stiffness): compute it again, as restoring this state would
@@ -318,12 +364,16 @@ class MujocoCore(EditedCore):
         twin._param_values = dict(self._param_values)
         twin._source = self._source.copy()
         twin._cache = OrderedDict()
-        twin._s = twin._remember(self._s.clone(self._layout))
+        twin._use(twin._remember(self._compiled.clone(self._layout)))
         return twin
 
     def refresh_outputs(self) -> None:
         """Rewrite every output from the current state (the world calls this after `place`)."""
         self._write_all()
+
+    mj = property(operator.attrgetter("_view"), doc=(
+        "The MuJoCo model and data simulated now (a `MujocoView`), read only; another view after each switch "
+        "to another compiled model. Its getter is C code (`operator.attrgetter`): sensors read it every step."))
 
     # -- parameters -----------------------------------------------------------------------------------------
     def _check_param(self, name: str, value: Any) -> None:
@@ -332,7 +382,7 @@ class MujocoCore(EditedCore):
         if name in bad and bad[name](value):
             raise ms.fail(self.name, f"parameter {name} = {value!r} is out of range")
 
-    def _apply_params(self, s: _Structure) -> None:
+    def _apply_params(self, s: CompiledScene) -> None:
         """Apply every run-time parameter to a structure's model (idempotent)."""
         m, p = s.model, self._param_values
         self._nsub = int(p["substeps"])
@@ -340,18 +390,18 @@ class MujocoCore(EditedCore):
         m.opt.timestep = dt
         m.opt.gravity[:] = p["gravity"]
         fr = float(p["friction"])
-        m.geom_friction[:, 0] = np.where(np.isnan(s.geom_friction), fr, s.geom_friction)
+        m.geom_friction[:, 0] = np.where(np.isnan(s.geom_own_friction), fr, s.geom_own_friction)
         solref, solimp = ms.contact_params(float(p["restitution"]), dt, float(np.linalg.norm(p["gravity"])))
         m.geom_solref[:] = solref
         m.geom_solimp[:] = solimp
         if m.npair:
             m.pair_solref[:], m.pair_solimp[:], m.pair_friction[:, :2] = solref, solimp, fr
-        if len(s.welds):
-            m.eq_solref[s.welds] = (2.0 * dt, 1.0)
-            m.eq_solimp[s.welds] = (0.99, 0.99, 0.001, 0.5, 2.0)
+        if len(s.weld_ids):
+            m.eq_solref[s.weld_ids] = (2.0 * dt, 1.0)
+            m.eq_solimp[s.weld_ids] = (0.99, 0.99, 0.001, 0.5, 2.0)
 
     # -- outputs ------------------------------------------------------------------------------------------------
-    def _write_outputs(self, s: _Structure) -> None:
+    def _write_outputs(self, s: CompiledScene) -> None:
         """Outputs that can change in a step: moving bodies, joints, sensors."""
         moves = self._moves
         if moves is None or moves[0] is not s:
@@ -359,22 +409,24 @@ class MujocoCore(EditedCore):
         for dst, di, src, si in moves[2]:
             dst[di] = src[si]
 
-    def _plan_moves(self, s: _Structure) -> tuple[list[tuple], list[tuple]]:
+    def _plan_moves(self, s: CompiledScene) -> tuple[list[tuple], list[tuple]]:
         """The copies `step` makes from the inputs and `_write_outputs` into the outputs, as
         (dst, index, src, index). Copies of neighbouring runs of one array into neighbouring outputs
         are merged, and where both indexes are slices the copy goes through memoryviews (a memcpy,
         ~4x cheaper than a numpy slice copy)."""
         ins = []
-        if s.njoint:
-            ins.append((s.qfrc, s.dadr, self._force, s.jrows))
+        if s.n_joints:
+            ins.append((s.qfrc_applied, s.joint_dof_adr, self._force, s.joint_rows))
         if len(s.ctrl):
-            ins.append((s.ctrl, slice(None), self._ctrl, s.act_src))
+            ins.append((s.ctrl, slice(None), self._ctrl, s.ctrl_rows))
         outs: list[list] = []  # [dst index in self._out, src array, src index], in output order
-        for block, rows, src, index in (("body_pos", s.mv3, s.xpos, s.mv_id3), ("body_quat", s.mv4, s.xquat, s.mv_id4),
-                                        ("joint_q", s.jrows, s.qpos, s.qadr), ("joint_qd", s.jrows, s.qvel, s.dadr),
-                                        ("sensordata", s.sens_rows, s.sensordata, s.sens_src),
-                                        ("body_linvel", s.mv3, s.sensordata, s.lin),
-                                        ("body_angvel", s.mv3, s.sensordata, s.ang)):
+        for block, rows, src, index in (("body_pos", s.moving_pos_rows, s.xpos_flat, s.moving_pos_src),
+                                        ("body_quat", s.moving_quat_rows, s.xquat_flat, s.moving_quat_src),
+                                        ("joint_q", s.joint_rows, s.qpos, s.joint_qpos_adr),
+                                        ("joint_qd", s.joint_rows, s.qvel, s.joint_dof_adr),
+                                        ("sensordata", s.sensor_rows, s.sensordata, s.sensor_src),
+                                        ("body_linvel", s.moving_pos_rows, s.sensordata, s.linvel_src),
+                                        ("body_angvel", s.moving_pos_rows, s.sensordata, s.angvel_src)):
             at = self._offset.get(block)
             if at is None or _empty(rows):
                 continue
@@ -389,23 +441,23 @@ class MujocoCore(EditedCore):
 
     def _write_all(self) -> None:
         """Every output, with the constant ones of static and frozen bodies and joints."""
-        s = self._s
-        self._pos[s.all3] = s.xpos[s.all_id3]
-        self._quat[s.all4] = s.xquat[s.all_id4]
-        self._pos[s.fused3] = s.fused_pos
-        self._quat[s.fused4] = s.fused_quat
-        self._lin[s.still3] = 0.0
-        self._ang[s.still3] = 0.0
-        self._q[s.frozen_jrows] = s.frozen_q
-        self._qd[s.frozen_jrows] = 0.0
+        s = self._compiled
+        self._pos[s.pos_rows] = s.xpos_flat[s.pos_src]
+        self._quat[s.quat_rows] = s.xquat_flat[s.quat_src]
+        self._pos[s.fused_pos_rows] = s.fused_pos
+        self._quat[s.fused_quat_rows] = s.fused_quat
+        self._lin[s.still_rows] = 0.0
+        self._ang[s.still_rows] = 0.0
+        self._q[s.frozen_joint_rows] = s.frozen_q
+        self._qd[s.frozen_joint_rows] = 0.0
         self._write_outputs(s)
 
-    def _divergence(self, s: _Structure, bad: int) -> str:
+    def _divergence(self, s: CompiledScene, bad: int) -> str:
         """Which joint diverged first (acceleration before velocity before position)."""
-        now = [w.number for _what, w in s.warns]
-        what, index = next(((what, int(w.lastinfo)) for (what, w), n0, n in zip(s.warns, s.warn_counts, now,
+        now = [w.number for _what, w in s.warnings]
+        what, index = next(((what, int(w.lastinfo)) for (what, w), n0, n in zip(s.warnings, s.warning_counts, now,
                                                                                 strict=True) if n > n0))
-        s.warn_counts, s.warn_seen = now, bad
+        s.warning_counts, s.warnings_seen = now, bad
         m = s.model
         if what == "position":
             j = int(np.searchsorted(m.jnt_qposadr, index, side="right")) - 1
@@ -433,7 +485,7 @@ class MujocoCore(EditedCore):
 
     def body_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         self._row(name)
-        s = self._s
+        s = self._compiled
         bid = s.body_id.get(name)
         if bid is None:
             pose = s.fused_pose[name]
@@ -443,7 +495,7 @@ class MujocoCore(EditedCore):
 
     def body_velocity(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         self._row(name)
-        s = self._s
+        s = self._compiled
         bid = s.body_id.get(name)
         res = np.zeros(6)
         if bid is not None:
@@ -453,7 +505,7 @@ class MujocoCore(EditedCore):
     # -- structural edits -----------------------------------------------------------------------------------
     def _freeze_entry(self, obj: str) -> ms.FrozenObject:
         """Where the bodies and joints of ``obj`` stand now."""
-        s, lay = self._s, self._layout
+        s, lay = self._compiled, self._layout
         bodies, joints = [], []
         for b in lay.subtree[obj]:
             bid = s.body_id[b]
@@ -471,19 +523,19 @@ class MujocoCore(EditedCore):
         return self._layout.parents[self._rows[body]]
 
     def _reserved_joint_names(self) -> set[str]:
-        model = self._s.model
+        model = self._compiled.model
         return set(self._layout.joints) | {model.equality(e).name for e in range(model.neq)}
 
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
         self._row(body)
-        s, lay = self._s, self._layout
+        s, lay = self._compiled, self._layout
         if body not in lay.free:
             raise ms.fail(self.name, f"body {body!r} has no free joint; place moves free bodies")
-        joint = next((j for j in lay.body_joints[body] if s.joint_slices.get(j, (0, 0))[1] == 7), None)
+        joint = next((j for j in lay.body_joints[body] if j in s.joint_slices and s.joint_slices[j].nq == 7), None)
         if joint is None:
             raise ms.fail(self.name, f"body {body!r} is frozen; select its object with make() first")
         p = np.asarray(pos, dtype=np.float64)
-        q = np.asarray(s.qpos[s.joint_slices[joint][0] + 3:][:4] if quat is None else quat, dtype=np.float64)
+        q = np.asarray(s.qpos[s.joint_slices[joint].qpos_adr + 3:][:4] if quat is None else quat, dtype=np.float64)
         if p.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(p)) and np.linalg.norm(q) > 0):
             raise ms.fail(self.name, f"place({body!r}): pos must be 3 numbers and quat 4 (w, x, y, z), not 0")
         qa, _nq, da, _nv = s.joint_slices[joint]
@@ -493,27 +545,33 @@ class MujocoCore(EditedCore):
         self._write_all()
 
     # -- structures -----------------------------------------------------------------------------------------
-    def _remember(self, s: _Structure) -> _Structure:
+    def _use(self, compiled: CompiledScene) -> None:
+        """Make ``compiled`` the compiled scene the core steps (and its view the one `mj` hands out)."""
+        self._compiled, self._view = compiled, compiled.view
+
+    def _remember(self, s: CompiledScene) -> CompiledScene:
         self._cache[s.edits] = s
         self._cache.move_to_end(s.edits)
         while len(self._cache) > CACHE_SIZE:
             self._cache.popitem(last=False)
         return s
 
-    def _structure(self, edits: Edits) -> _Structure:
+    def _compiled_for(self, edits: Edits) -> CompiledScene:
+        """The compiled scene of ``edits``: from the cache, or compiled now."""
         s = self._cache.get(edits)
         if s is None:
             model, movers = ms.build_structure(self.name, self._source, edits)
-            s = _Structure(self._layout, edits, model, movers, self._friction)
+            s = CompiledScene(self._layout, edits, model, movers, self._friction)
         return self._remember(s)
 
     def _activate(self, edits: Edits, *, carry: bool) -> None:
-        old, new = self._s, self._structure(edits)
+        old, new = self._compiled, self._compiled_for(edits)
         self._apply_params(new)
         if carry:
             ms.carry_over(old, new)
             mujoco.mj_forward(new.model, new.data)
-        self._s, self._edits = new, edits
+        self._use(new)
+        self._edits = edits
 
     def _edit(self, edits: Edits) -> None:
         if edits != self._edits:
