@@ -2,8 +2,8 @@
 loop, and history's state saver as another generated function.
 
 The kernel's hot loop walks the schedule every tick: for each module, test its phase, make the copies
-its inputs need, call its step. Walking a list of entries costs a few hundred nanoseconds per module
-and tick (unpacking, empty loops, branches) on top of the step itself. For each structure,
+its inputs need, call its step. Walking a list of entries (`PlainTick`) costs 0.1 to 0.2 us per
+module and tick more (attribute loads, empty loops, branches) on top of the step itself. For each structure,
 `CompiledTick` writes that walk out as straight-line source, one statement per copy and per step,
 with the steps and index arrays bound as fast locals, and compiles it. A structure changes only on an
 edit (add, remove, connect, ...), and keeps its function (`Structure.compiled`), so one compilation
