@@ -8,7 +8,8 @@
 
 The rooms behind it, bottom up (each imports only the rooms below it; `ARCHITECTURE.md` draws them):
 `kernel` (World, the module and core contracts, bus, schedule, history), `fmu` (the FMU adapter),
-`scenario` (YAML in, a World out), `logs` (MCAP), `cli` (the ``dynabrain`` command). A module author
+`scenario` (YAML in, a World out), `logs` (MCAP) and `brain` (batches of futures), `cli` (the
+``dynabrain`` command). A module author
 needs nothing but the names here.
 
 The names are loaded on first use, so importing one room does not import the others.
@@ -28,15 +29,17 @@ _FACE = {
         "WorldClosedError",
     ),
     "scenario": ("load_world", "load_scenario", "make_module", "run_scenario", "Scenario", "RunResult"),
+    "brain": ("Batch", "BatchResult", "BranchStatus"),
 }
 _WHERE = {name: room for room, names in _FACE.items() for name in names}
 
 __all__ = [  # the same names as `_FACE`, written out for tools that read __all__
-    "AlgebraicLoopError", "BodySpec", "Capabilities", "CheckReport", "Connection", "DynabrainError", "ForkError",
-    "JointSpec", "Module", "ModuleError", "Observer", "Param", "PhysicsCore", "PhysicsDivergedError", "Port",
-    "Problem", "RollbackError", "RunResult", "Scenario", "ScenarioError", "SceneSpec", "SetupContext", "UnitError",
-    "WiringError", "World", "WorldClosedError", "WorldEvent", "WorldState", "WorldView", "check_module",
-    "load_scenario", "load_world", "make_module", "run_scenario",
+    "AlgebraicLoopError", "Batch", "BatchResult", "BodySpec", "BranchStatus", "Capabilities", "CheckReport",
+    "Connection", "DynabrainError", "ForkError", "JointSpec", "Module", "ModuleError", "Observer", "Param",
+    "PhysicsCore", "PhysicsDivergedError", "Port", "Problem", "RollbackError", "RunResult", "Scenario",
+    "ScenarioError", "SceneSpec", "SetupContext", "UnitError", "WiringError", "World", "WorldClosedError",
+    "WorldEvent", "WorldState", "WorldView", "check_module", "load_scenario", "load_world", "make_module",
+    "run_scenario",
 ]
 
 
@@ -54,6 +57,7 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:
+    from .brain import Batch, BatchResult, BranchStatus
     from .kernel import (
         AlgebraicLoopError,
         BodySpec,

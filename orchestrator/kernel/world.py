@@ -21,11 +21,12 @@ import itertools
 import threading
 import time as _time
 import zlib
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from . import portable
 from .compiled import compiled_by_default, state_saver
 from .core import PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
@@ -39,6 +40,7 @@ from .structure import (
     BusLayout,
     Connection,
     ModuleRecord,
+    Slot,
     Structure,
     build_structure,
     split_signal,
@@ -92,7 +94,14 @@ class World:
         self._source = "api"  # who is editing: "scenario" while scheduled actions run
         self._snapshots = itertools.count(1)
         self._id = id(self)
+        self._export_heads: dict[tuple[int, int], tuple] = {}  # export_state's headers (`_export_header`)
         self.error: BaseException | None = None
+        self.module_factory: Callable[[dict[str, Any]], Module] | None = None
+        """Makes a module from its spec (the scenario's module syntax) when `import_state` brings one this
+        world lacks; the scenario layer sets it (`make_module` with the scenario's folder)."""
+        self.rebuild: Callable[[], World] | None = None
+        """A picklable call that builds this world again, as it was at t=0 (the scenario layer sets it:
+        `load_world` of the same file); a batch's worker processes build their copies with it."""
         if core is not None:
             self.add_module(core)
 
@@ -689,6 +698,202 @@ class World:
     def _rng_for(self, name: str) -> np.random.Generator:
         return np.random.default_rng([self.seed, zlib.crc32(name.encode())])
 
+    # -- portable state and driven runs ------------------------------------------------------------------
+    def export_state(self, snapshot: WorldState | None = None) -> bytes:
+        """The whole state (now, or of ``snapshot``, a state of this world) as versioned bytes that
+        `import_state` takes back, in this world or in another built the same way (another process,
+        another host). The layout is documented in `kernel.portable`."""
+        with self._lock:
+            self._check_open()
+            state = self._capture() if snapshot is None else snapshot
+            if not isinstance(state, WorldState) or state.world_id != self._id:
+                raise RollbackError("export_state() takes a snapshot made by this same world")
+            self._check_restorable(state, "export_state")
+            records = state.structure.records
+            return portable.encode(self._export_header(state), state.bus, state.states, state.params,
+                                   lambda i: records[i].name)
+
+    def _export_header(self, state: WorldState) -> dict[str, Any]:
+        """The header's fields but the tick: made once per structure and set of parameter dicts (the
+        cache holds them, so their ids stay theirs)."""
+        key = (id(state.structure), id(state.params))
+        hit = self._export_heads.get(key)
+        if hit is None or hit[0] is not state.structure or hit[1] is not state.params:
+            modules = [{"name": r.name, "class": f"{type(r.module).__module__}:{type(r.module).__qualname__}",
+                        "signature": portable.signature(r.module, (*r.inputs, *r.outputs)),
+                        "period_ns": r.period_ns, "phase": r.phase,
+                        "spec": module_spec(r.module, r.period_ns)} for r in state.structure.records]
+            conns = [[c.src, c.dst, c.delay] for c in state.structure.connections]
+            head = {"world": self.name, "step_ns": self.dt_ns, "modules": modules, "connections": conns,
+                    "bus": int(state.bus.size)}
+            if len(self._export_heads) >= 8:
+                self._export_heads.clear()
+            hit = self._export_heads[key] = (state.structure, state.params, head)
+        return {**hit[2], "tick": state.tick}
+
+    def import_state(self, data: bytes) -> None:
+        """Take back a state from `export_state` (of this world or of another built the same way).
+        Modules the state has and this world lacks are made from their recorded spec with
+        ``module_factory``; modules this world has and the state lacks leave the structure. Refused,
+        with the world unchanged, when the worlds do not match (name, step, a module's class or ports,
+        the dynabrain version). History restarts at the imported state."""
+        with self._lock:
+            self._check_open()
+            ps = self._decode_state(data)
+            structure = self._structure_for(ps)
+            params = tuple(_same_params(rec.module._param_values, values)
+                           for rec, values in zip(structure.records, ps.params, strict=True))
+            state = WorldState(self._id, ps.tick, structure, ps.bus, ps.states, params)
+            from_tick = self._tick
+            self._apply(state)
+            self._history.clear()
+            self._history.push(state)
+            self._dirty = False
+            self._emit("restore", from_tick=from_tick, snapshot=0, imported=True)
+            for obs in self._observers:
+                obs.on_rollback(self._view, from_tick)
+
+    def check_state(self, data: bytes) -> None:
+        """Raise `StateFormatError`, saying why, when `import_state` would refuse ``data``: bytes that
+        are not a state of this dynabrain, another base step, or a module of the same name that differs
+        (class or ports: another scene). Modules only one side has do not count: import makes or drops them."""
+        with self._lock:
+            self._decode_state(data)
+
+    def _decode_state(self, data: bytes) -> portable.PortableState:
+        ps = portable.decode(data)
+        if ps.step_ns != self.dt_ns:
+            raise portable.StateFormatError(
+                f"import_state: the state is of a world with step {format_duration(ps.step_ns)} (world "
+                f"{ps.world!r}); this world's step is {format_duration(self.dt_ns)}")
+        mine = {rec.name: rec for rec in self._structure.records}
+        for entry in ps.modules:
+            rec = mine.get(entry.name)
+            if rec is None:
+                continue
+            cls = f"{type(rec.module).__module__}:{type(rec.module).__qualname__}"
+            if cls != entry.cls or portable.signature(rec.module, (*rec.inputs, *rec.outputs)) != entry.signature:
+                raise portable.StateFormatError(
+                    f"import_state: module {entry.name!r} differs: the state's (world {ps.world!r}) is {entry.cls}, "
+                    f"this world's is {cls}" + (" with other ports (another scene or configuration?)"
+                                                 if cls == entry.cls else ""))
+        return ps
+
+    def _structure_for(self, ps: portable.PortableState) -> Structure:
+        """This world's structure when it matches the state's, else one made for it (new modules made
+        and set up; a failure closes them and leaves the world as it was)."""
+        current = self._structure
+        by_name: dict[str, ModuleRecord | Module] = {m.name: m for m in self._known.values()}  # removed ones too
+        by_name.update({rec.name: rec for rec in current.records})
+        made: list[Module] = []
+        records: list[ModuleRecord] = []
+        try:
+            for entry in ps.modules:
+                have = by_name.get(entry.name)
+                if isinstance(have, ModuleRecord):
+                    module, inputs, outputs = have.module, have.inputs, have.outputs
+                else:
+                    module = have if have is not None else self._make_for_import(entry, made)
+                    inputs, outputs = tuple(module.inputs()), tuple(module.outputs())
+                cls = f"{type(module).__module__}:{type(module).__qualname__}"
+                if cls != entry.cls or portable.signature(module, (*inputs, *outputs)) != entry.signature:
+                    raise portable.StateFormatError(
+                        f"import_state: module {entry.name!r} differs: the state's is {entry.cls}, this world's is "
+                        f"{cls}" + (" with other ports (another scene or configuration?)" if cls == entry.cls else ""))
+                records.append(ModuleRecord(entry.name, module, entry.period_ns // self.dt_ns, entry.phase,
+                                            entry.period_ns, inputs, outputs))
+            conns = tuple(Connection(s, d, x) for s, d, x in ps.connections)
+            same = (len(records) == len(current.records) and conns == tuple(
+                Connection(c.src, c.dst, c.delay) for c in current.connections) and all(
+                a.module is b.module and a.period_ns == b.period_ns and a.phase == b.phase
+                for a, b in zip(records, current.records, strict=True)))
+            if same:
+                return current
+            structure = build_structure(records, conns)
+        except BaseException:
+            for module in made:
+                _close_quietly(module)
+                self._known.pop(id(module), None)
+            raise
+        return structure
+
+    def _make_for_import(self, entry: portable.ModuleEntry, made: list[Module]) -> Module:
+        if self.module_factory is None:
+            raise portable.StateFormatError(
+                f"import_state: the state has module {entry.name!r} ({entry.cls}), which this world lacks, and the "
+                "world has no module_factory to make it (a world from load_world has one)")
+        module = self.module_factory(entry.spec)
+        made.append(module)
+        self._known[id(module)] = module
+        ctx = SetupContext(self.name, self.dt_ns, entry.period_ns, self._tick, self._rng_for(module.name),
+                           module if isinstance(module, PhysicsCore) else self._core)
+        _call(module, "setup", self._tick, module.setup, ctx)
+        return module
+
+    def run(self, ticks: int, *, inputs: Mapping[str, Any] | None = None,
+            record: Sequence[str] = ()) -> dict[str, np.ndarray]:
+        """Tick ``ticks`` times, driving inputs and recording signals: before tick k each input port
+        named in ``inputs`` takes ``inputs[name][k]`` (an array of shape ``(ticks, *port shape)``; the
+        same as `set` before each `tick`), and after tick k each signal named in ``record`` is copied
+        into row k of its array. Returns ``{signal: array (ticks, *shape)}``.
+
+        Every name and shape is checked before the first tick. On a failure the world rolls back the
+        failed tick as `tick` does, and the `ModuleError` raised carries ``recorded`` (the arrays, rows
+        of the ticks not done NaN) and ``ticks_done``."""
+        with self._lock:
+            self._check_open()
+            ticks = int(ticks)
+            if ticks < 0:
+                raise DynabrainError(f"run({ticks}): the number of ticks must be >= 0")
+            drives = self._drives(inputs or {}, ticks)
+            out = {name: np.full((ticks, *self._signal_slot(name, "run() record").shape), np.nan) for name in record}
+            rows = [(out[name].reshape(ticks, -1), name) for name in out]
+            structure, slots = None, []
+            k = 0
+            try:
+                for k in range(ticks):
+                    if self._structure is not structure:  # (an event may change it): find the slots again
+                        structure = self._structure
+                        slots = [(self._input_slot(name), values, name) for values, name in drives]
+                        recs = [(self._signal_slot(name, "run() record"), row) for row, name in rows]
+                    for slot, values, name in slots:
+                        self._buf[slot.start:slot.start + slot.size] = values[k]
+                        if self._observers:
+                            self._emit("set", name=name, value=values[k].reshape(slot.shape).tolist())
+                    if slots:
+                        self._dirty = True
+                    self._step_once()
+                    for slot, row in recs:
+                        row[k] = self._buf[slot.start:slot.start + slot.size]
+            except ModuleError as err:
+                err.recorded, err.ticks_done = out, k
+                raise
+            return out
+
+    def _drives(self, inputs: Mapping[str, Any], ticks: int) -> list[tuple[np.ndarray, str]]:
+        drives = []
+        for name, values in inputs.items():
+            full = self.settable(name)
+            if not isinstance(full, str):
+                raise WiringError(f"run(): {name!r} is a parameter; inputs are input ports (set a parameter with set)")
+            slot = self._structure.layout.slots[full]
+            arr = np.asarray(values, dtype=np.float64)
+            if arr.shape != (ticks, *slot.shape):
+                raise WiringError(f"run(): the values for {full} have shape {arr.shape}; {ticks} ticks of a port of "
+                                  f"shape {slot.shape} need {(ticks, *slot.shape)}")
+            drives.append((arr.reshape(ticks, -1), full))
+        return drives
+
+    def _input_slot(self, full: str) -> Slot:
+        self.settable(full)
+        return self._structure.layout.slots[full]
+
+    def _signal_slot(self, name: str, what: str) -> Slot:
+        slot = self._resolve_signal(name)
+        if slot is None:
+            raise WiringError(f"{what}: no signal {name!r}" + did_you_mean(name, list(self._structure.layout.slots)))
+        return slot
+
     def status(self) -> dict[str, Any]:
         """A plain summary of the world."""
         with self._lock:
@@ -721,6 +926,24 @@ def _flat(buf: np.ndarray, layout: BusLayout, rec: ModuleRecord, ports: Sequence
     view = buf[own[0].start:own[-1].start + own[-1].size]
     view.setflags(write=writable)
     return view
+
+
+def _same_params(current: dict[str, Any], values: dict[str, Any]) -> dict[str, Any]:
+    """``current`` itself when ``values`` holds the same parameters (an imported state's dicts are new
+    objects: keeping the module's own spares it `on_param` calls for values that did not change)."""
+    if current.keys() != values.keys():
+        return values
+    for key, value in values.items():
+        mine = current[key]
+        if mine is value:
+            continue
+        if isinstance(mine, np.ndarray) or isinstance(value, np.ndarray):
+            if not (isinstance(mine, np.ndarray) and isinstance(value, np.ndarray) and mine.dtype == value.dtype
+                    and np.array_equal(mine, value)):
+                return values
+        elif type(mine) is not type(value) or mine != value:
+            return values
+    return current
 
 
 def _read_only(buf: np.ndarray) -> np.ndarray:

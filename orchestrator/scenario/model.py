@@ -7,6 +7,7 @@ for the full shape.
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass, field
 from typing import Any
@@ -110,6 +111,8 @@ class Scenario:
         if builder.problems:
             world.close()
             raise ScenarioError(builder.problems)
+        world.module_factory = functools.partial(make_module, base_dir=self.dir)
+        world.rebuild = functools.partial(load_world, os.path.abspath(self.path), **overrides)
         return world
 
     def check(self) -> list[Problem]:

@@ -1,0 +1,123 @@
+"""The ``ray`` backend: the batch's workers as Ray actors, on a local Ray or on a cluster.
+
+Each actor is a `BranchRunner` (a world of its own, built with the batch's ``build``) and runs one
+branch at a time; a finished actor takes the next branch. An actor that dies fails the branch it was
+running, with Ray's reason, and is replaced. Ray is an optional extra: ``pip install 'dynabrain[ray]'``.
+
+On other hosts: start a head (``ray start --head --port=6379``) and workers (``ray start
+--address=HEAD:6379``) with dynabrain installed and the scenario files at the same paths, then
+``Batch(world, backend="ray", address="HEAD:6379")``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from ..kernel.errors import DynabrainError
+from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
+
+CONNECT_TIMEOUT_S = 10
+"""How long the first contact with a cluster may take (a TCP connection to its address)."""
+
+
+def _ray() -> Any:
+    try:
+        import ray
+    except ImportError:
+        raise DynabrainError("batch backend 'ray' needs Ray: pip install 'dynabrain[ray]'") from None
+    return ray
+
+
+def connect(address: str | None) -> Any:
+    """Ray, initialised: joined to the cluster at ``address``, or a local Ray when None (an existing
+    connection is kept). A cluster that cannot be reached is an error naming the address."""
+    ray = _ray()
+    if ray.is_initialized():
+        return ray
+    if address is not None and address != "auto":
+        _probe(address)
+    try:
+        if address is None:  # a local Ray: it advertises loopback (its servers still bind Ray's own way)
+            ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False,
+                     _node_ip_address="127.0.0.1")
+        else:
+            ray.init(address=address, log_to_driver=False, configure_logging=False)
+    except Exception as exc:
+        raise DynabrainError(f"batch backend 'ray': cannot reach the Ray cluster at {address!r}: "
+                             f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from None
+    return ray
+
+
+def _probe(address: str) -> None:
+    """Fail fast when nothing answers at ``address`` (Ray itself retries for minutes)."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        with socket.create_connection((host or "127.0.0.1", int(port)), timeout=CONNECT_TIMEOUT_S):
+            pass
+    except (OSError, ValueError) as exc:
+        raise DynabrainError(f"batch backend 'ray': cannot reach the Ray cluster at {address!r}: "
+                             f"{exc.strerror if isinstance(exc, OSError) and exc.strerror else exc}") from None
+
+
+class RayPool:
+    """``size`` actors (default: the cluster's CPUs) building their worlds with ``build``."""
+
+    def __init__(self, build: Callable[[], Any], size: int | None, address: str | None):
+        self.ray = ray = connect(address)
+        self.build = build
+        self.size = size or max(1, int(ray.cluster_resources().get("CPU", 1)))
+        self.replaced = 0
+        self._runner = ray.remote(num_cpus=1, max_restarts=0)(BranchRunner)
+        self._actors = [self._runner.remote(build) for _ in range(self.size)]
+        try:  # a world that cannot be built is an error now, not a failed branch later
+            ray.get([actor.__ray_ready__.remote() for actor in self._actors])
+        except Exception as exc:
+            self.close()
+            raise DynabrainError(f"batch backend 'ray': a worker could not build its world: {_reason(exc)}") from None
+
+    def map(self, tasks: Sequence[BranchTask]) -> list[BranchOutcome]:
+        """Every task's outcome, in the order of ``tasks``."""
+        ray = self.ray
+        queue = deque(tasks)
+        idle = list(self._actors)
+        running: dict[Any, tuple[Any, BranchTask]] = {}
+        outcomes: dict[int, BranchOutcome] = {}
+        while queue or running:
+            while queue and idle:
+                actor, task = idle.pop(), queue.popleft()
+                running[actor.run.remote(task)] = (actor, task)
+            done, _ = ray.wait(list(running), num_returns=1)
+            for ref in done:
+                actor, task = running.pop(ref)
+                try:
+                    outcomes[task.index] = ray.get(ref)
+                except ray.exceptions.RayActorError as exc:
+                    outcomes[task.index] = BranchOutcome(task.index, {}, None, BranchStatus(
+                        False, f"the Ray worker running branch {task.index} died ({_reason(exc)})"))
+                    actor = self._replace(actor)
+                except ray.exceptions.RayError as exc:
+                    outcomes[task.index] = BranchOutcome(task.index, {}, None, BranchStatus(
+                        False, f"branch {task.index} failed in Ray: {_reason(exc)}"))
+                idle.append(actor)
+        return [outcomes[t.index] for t in tasks]
+
+    def _replace(self, dead: Any) -> Any:
+        fresh = self._runner.remote(self.build)
+        self._actors[self._actors.index(dead)] = fresh
+        self.replaced += 1
+        return fresh
+
+    def close(self) -> None:
+        for actor in self._actors:
+            with contextlib.suppress(Exception):  # already gone
+                self.ray.kill(actor)
+        self._actors = []
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[-1] if text else type(exc).__name__
