@@ -110,8 +110,7 @@ class FMUModuleBase(Module):
 
     def scenario_spec(self) -> dict[str, Any]:
         """The scenario syntax that makes this module again."""
-        params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.params.items()}
-        return {"name": self.name, "fmu": self.source, "params": params}
+        return {"name": self.name, "fmu": self.source, "params": self._plain_params()}
 
 
 def _span(views: list[np.ndarray], total: int) -> np.ndarray | None:

@@ -365,9 +365,12 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
         """The scenario syntax that makes this module again (logs, replay, the bridge), parameters in
         SI; the world adds the period, targets and connections. By default the Python class path; a
         module not made from one (an FMU) says how it is made."""
-        params = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.params.items()}
         return {"name": self.name, "python": f"{type(self).__module__}:{type(self).__qualname__}",
-                "params": params}
+                "params": self._plain_params()}
+
+    def _plain_params(self) -> dict[str, Any]:
+        """The parameter values as plain data (arrays as lists), for descriptions and specs."""
+        return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self._param_values.items()}
 
     def describe(self) -> dict[str, Any]:
         """A plain description (for `dynabrain check`, logs and the bridge)."""
@@ -376,7 +379,7 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
             "class": f"{type(self).__module__}:{type(self).__qualname__}",
             "inputs": [(p.name, p.shape, p.unit) for p in self.inputs()],
             "outputs": [(p.name, p.shape, p.unit) for p in self.outputs()],
-            "params": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.params.items()},
+            "params": self._plain_params(),
             "targets": list(self.targets),
             "capabilities": self.CAPABILITIES,
         }
