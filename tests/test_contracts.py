@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from dynabrain.modules.basic import Counter
+from dynabrain.modules.exudyn.core import ExudynCore
 from dynabrain.modules.mujoco.core import MujocoCore, MujocoView
 from dynabrain.modules.mujoco.scene import FrozenBody, FrozenObject
 from dynabrain.orchestrator.kernel.core import (
@@ -319,3 +320,22 @@ def test_edits_are_named_immutable_values_that_pickle_and_compare():
     core.remove_joint("glue")
     assert core.get_state()[0].welds == () and core.get_state()[0].frozen == edits.frozen
     core.close()
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "exudyn"])
+def test_an_edited_core_state_is_portable(engine):
+    """The edit types are registered state types: a state holding them is exported and imported."""
+    make_core = {"mujoco": MujocoCore, "exudyn": ExudynCore}[engine]
+    with World("w", step="2ms", core=make_core("core", scene())) as world:
+        world.tick(10)
+        world.make(["a", "b", "arm"])
+        world.make_joint("a", "b", "glue")
+        world.no_collision(["a", "arm"])
+        world.tick(10)
+        data = world.export_state()
+        expected = run(world, 20)
+        edits = world.core.get_state()[0]
+        world.make(["a", "b", "arm", "floor"])  # another structure meanwhile
+        world.import_state(data)
+        assert world.core.get_state()[0] == edits and world.core.selection == ("a", "b", "arm")
+        assert all(np.array_equal(a, b) for a, b in zip(run(world, 20), expected, strict=True))

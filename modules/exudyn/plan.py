@@ -17,11 +17,13 @@ from typing import NamedTuple
 import numpy as np
 
 from dynabrain.orchestrator.kernel.core import Edits
+from dynabrain.orchestrator.kernel.portable import state_type
 
 from . import geometry as geo
 from .topology import Topology, fail
 
 
+@state_type
 class FrozenObject(NamedTuple):
     """The Exudyn core's entry of one frozen object in `Edits.frozen` (`ExudynCore._freeze_entry`)."""
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from dynabrain.orchestrator.kernel.core import FLEX_SHAPES, SHAPES, BodySpec, Edits, SceneSpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.portable import state_type
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
 ENGINE = "mujoco"
@@ -310,6 +311,7 @@ def _geom_info(model: mujoco.MjModel, names: tuple[str, ...]) -> dict[str, tuple
 
 
 # -- structures ------------------------------------------------------------------------------------------
+@state_type
 class FrozenBody(NamedTuple):
     """Where one body of a frozen object stood when it froze."""
 
@@ -321,6 +323,7 @@ class FrozenBody(NamedTuple):
     """Its pose in the world frame (x, y, z, qw, qx, qy, qz): the outputs of a body fused into the world."""
 
 
+@state_type
 class FrozenObject(NamedTuple):
     """The MuJoCo core's entry of one frozen object in `Edits.frozen` (`MujocoCore._freeze_entry`)."""
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from .errors import DynabrainError
 from .module import Capabilities, Module
+from .portable import state_type
 from .suggest import did_you_mean
 
 SHAPES = ("plane", "box", "sphere", "capsule", "cylinder")
@@ -139,6 +140,7 @@ class BodyInfo:
     geoms: tuple[dict, ...] = ()
 
 
+@state_type
 class Weld(NamedTuple):
     """A joint made at run time (`PhysicsCore.make_joint`): body ``b`` held rigidly to body ``a`` as
     they stood when it was made."""
@@ -151,6 +153,7 @@ class Weld(NamedTuple):
     """What the engine needs to make the weld again (the relative pose, in the engine's terms)."""
 
 
+@state_type
 class Edits(NamedTuple):
     """The structural edits of an `EditedCore`, as one immutable, hashable value (part of its state:
     history keeps it, a restore compares it, a core caches what it compiled for it)."""
