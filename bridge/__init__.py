@@ -1,11 +1,11 @@
 """The Zenoh bridge: a World served to remote brains (`server.BridgeServer`, ``dynabrain serve``), the brain
-client (`BrainClient`), the real-robot link with its watchdog and shadow mode (`robot_link`), a robot
-emulator (`robot_emulator`), recordings replayed over Zenoh (`replay`), and the wire format (`protocol`,
-`frames`, ``PROTOCOL.md``)."""
+client (`BrainClient`; `BrainClient.batch` asks for N futures in one call), the real-robot link with its
+watchdog and shadow mode (`robot_link`), a robot emulator (`robot_emulator`), recordings replayed over
+Zenoh (`replay`), and the wire format (`protocol`, `frames`, ``PROTOCOL.md``)."""
 
 from typing import Any
 
-from .client import BrainClient, Snapshot, StateFrame, View
+from .client import BatchReply, BrainClient, Snapshot, StateFrame, View
 from .errors import (
     BadRequestError,
     BridgeError,
@@ -19,9 +19,9 @@ from .errors import (
 )
 
 __all__ = [
-    "BadRequestError", "BrainClient", "BridgeError", "CallTimeoutError", "ConnectError", "ModuleFailedError",
-    "NoWorldError", "Snapshot", "StateFrame", "View", "WorldBusyError", "WorldRefusedError", "WorldRestartedError",
-    "publish_recording",
+    "BadRequestError", "BatchReply", "BrainClient", "BridgeError", "CallTimeoutError", "ConnectError",
+    "ModuleFailedError", "NoWorldError", "Snapshot", "StateFrame", "View", "WorldBusyError", "WorldRefusedError",
+    "WorldRestartedError", "publish_recording",
 ]
 
 

@@ -1,9 +1,10 @@
 """One World behind the bridge's calls, with no Zenoh in sight: views (named signals read as one binary
-frame), snapshots by handle, brain inputs held until the next step boundary, and one method per call.
+frame), snapshots by handle, brain inputs held until the next step boundary, batches of futures
+(`batching`), and one method per call.
 
 `WorldService.call(name, args)` runs a validated call and returns its result: plain JSON values, or
-``bytes`` (a state frame) for ``tick`` / ``read`` with a view. A call either completes or raises and
-changes nothing (the World's own guarantee; a failed tick is rolled back by the World). The calls it
+``bytes`` (a frame) for ``tick`` / ``read`` with a view and for ``batch``. A call either completes or
+raises and changes nothing (the World's own guarantee; a failed tick is rolled back by the World). The calls it
 answers are the world's calls of `protocol.TABLE`, one ``do_<call>`` method each; the server answers
 the others (holds, forks, the loop, robots, its status).
 """
@@ -21,7 +22,6 @@ from typing import Any
 import numpy as np
 
 from dynabrain.orchestrator.kernel.errors import DynabrainError
-from dynabrain.orchestrator.kernel.history import WorldState
 from dynabrain.orchestrator.kernel.observers import WorldView
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
 from dynabrain.orchestrator.kernel.units import parse_duration_ns
@@ -30,6 +30,7 @@ from dynabrain.orchestrator.scenario.make import ModuleNotAllowedError, make_mod
 
 from . import frames
 from . import protocol as p
+from .batching import BatchCall, BatchSettings, KeptState, Stored
 
 DEFAULT_ALLOW_PYTHON = ("dynabrain.*",)
 """Module classes a remote brain may add (``fnmatch`` patterns on ``package.module:Class``)."""
@@ -104,7 +105,7 @@ class WorldService:
 
     def __init__(self, world: World, *, instance: int, allow_python: Sequence[str] = DEFAULT_ALLOW_PYTHON,
                  base_dir: str | None = None, max_snapshots: int = 64, max_views: int = 256,
-                 stream: Sequence[str] = ()):
+                 stream: Sequence[str] = (), batch: BatchSettings | None = None):
         self.world = world
         self.instance = instance
         self.allow_python = tuple(allow_python)
@@ -113,7 +114,7 @@ class WorldService:
         self._wv = WorldView(world)
         self._views: dict[int, View] = {}
         self._next_view = 1
-        self._snapshots: OrderedDict[int, WorldState] = OrderedDict()
+        self._snapshots: OrderedDict[int, Stored] = OrderedDict()
         self._next_snapshot = 0
         self._pending: dict[str, Any] = {}
         self._pending_lock = threading.Lock()
@@ -122,6 +123,8 @@ class WorldService:
         self.on_input_error: Callable[[str], None] | None = None
         self.rigs: dict[str, Rig] = {}
         self._handlers = p.handlers(self, server=False)
+        # made now (its workers start at the first batch): a backend this world cannot use is refused at once
+        self._batch = BatchCall(world, batch or BatchSettings("serial"), max_snapshots=max_snapshots)
         if stream:
             self._views[STREAM_VIEW] = self._resolve(View(STREAM_VIEW, tuple(stream)))
 
@@ -211,27 +214,45 @@ class WorldService:
     # -- snapshots ------------------------------------------------------------------------------------------
     def do_snapshot(self, a: p.NoArgs) -> dict[str, Any]:
         state = self.world.snapshot()
+        sid, evicted = self.keep(state)
+        return {"snapshot": sid, "tick": state.tick, "evicted": evicted}
+
+    def keep(self, state: Stored) -> tuple[int, list[int]]:
+        """Keep a state under a new snapshot id; returns the id and those evicted to make room."""
         sid = self._next_snapshot
         self._next_snapshot += 1
         self._snapshots[sid] = state
         evicted = []
         while len(self._snapshots) > self.max_snapshots:
             evicted.append(self._snapshots.popitem(last=False)[0])
-        return {"snapshot": sid, "tick": state.tick, "evicted": evicted}
+        return sid, evicted
 
     def do_restore(self, a: p.SnapshotRef) -> None:
-        self.world.restore(self._snapshot(a.snapshot))
+        state = self._snapshot(a.snapshot)
+        if isinstance(state, KeptState):  # a batch branch's final state
+            self.world.import_state(state.data)
+        else:
+            self.world.restore(state)
 
     def do_drop_snapshot(self, a: p.SnapshotRef) -> None:
         self._snapshot(a.snapshot)
         del self._snapshots[a.snapshot]
 
-    def _snapshot(self, sid: int) -> WorldState:
+    def _snapshot(self, sid: int) -> Stored:
         state = self._snapshots.get(sid)
         if state is None:
             raise DynabrainError(f"no snapshot {sid} on world {self.world.name!r} (dropped, evicted after "
                                  f"{self.max_snapshots}, or made before the server restarted)")
         return state
+
+    # -- batches of futures ---------------------------------------------------------------------------------
+    def do_batch(self, a: p.BatchArgs) -> bytes:
+        """N futures of the world (`batching`): a BATCH frame; the world is only read."""
+        return self._batch.run(a, snapshot=self._snapshot, keep=self.keep, instance=self.instance)
+
+    def close(self) -> None:
+        """Stop the batch's workers (the World itself stays open: its owner closes it)."""
+        self._batch.close()
 
     # -- views ----------------------------------------------------------------------------------------------
     def do_view(self, a: p.ViewArgs) -> dict[str, Any]:
@@ -377,6 +398,7 @@ class WorldService:
         out["views"] = sum(1 for k in self._views if k >= 0)
         out["snapshots"] = list(self._snapshots)
         out["instance"] = self.instance
+        out["batch"] = self._batch.describe()
         if STREAM_VIEW in self._views:
             out["stream"] = self.describe_view(STREAM_VIEW)
         out["robots"] = {r.robot: {"servo": r.servo, "input": r.signal, "joints": list(r.joints)}

@@ -7,6 +7,9 @@
         v = world.view(["core.joint_q", "cube.pos"])
         frame = world.tick(10, view=v)          # one round trip: ten ticks and the state after them
         print(frame["core.joint_q"], frame.tick)
+        futures = world.batch(200, branches=8, params={"servo.kp": [20, 30, 40, 50, 60, 70, 80, 90]},
+                              record=["core.joint_q"], keep_states=True)   # 8 futures, the world unchanged
+        world.restore(futures.snapshots[3])     # continue from the fourth
 
 Errors tell the situations apart (`errors`): `ConnectError` (no session), `NoWorldError` (nobody
 serves that world), `CallTimeoutError` (alive but slow), `WorldRefusedError` and its subclasses (the world
@@ -25,12 +28,14 @@ from __future__ import annotations
 import contextlib
 import json
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import zenoh
+
+from dynabrain.orchestrator.brain import BranchStatus
 
 from . import frames
 from . import protocol as p
@@ -90,6 +95,51 @@ class Snapshot:
 
     id: int
     tick: int
+
+
+@dataclass(frozen=True)
+class BatchReply:
+    """What `BrainClient.batch` returns: ``signals[name]`` of shape ``(branches, ticks, *shape)`` (row k the
+    value after tick k+1; NaN for ticks a failed branch did not run), ``status[b]`` how branch b ended,
+    ``snapshots[b]`` the snapshot that keeps its final state (with ``keep_states``; else None), which
+    `BrainClient.restore` continues from. ``tick``: the served world's tick, which the batch left as it was."""
+
+    signals: dict[str, np.ndarray]
+    status: list[BranchStatus]
+    snapshots: list[Snapshot | None]
+    ticks: int
+    tick: int
+    backend: str
+    wall_s: float
+    evicted: list[int]
+    """Snapshots the server dropped to make room for these (it keeps 64)."""
+
+    @property
+    def ok(self) -> bool:
+        """Every branch ran to its end."""
+        return all(s.ok for s in self.status)
+
+    @property
+    def failed(self) -> list[int]:
+        return [b for b, s in enumerate(self.status) if not s.ok]
+
+    @classmethod
+    def from_frame(cls, frame: frames.Frame) -> BatchReply:
+        meta = json.loads(frame.meta)
+        branches, ticks = int(meta["branches"]), int(meta["ticks"])
+        if frame.values.size != int(meta["size"]):
+            raise BridgeError(f"batch frame of {frame.values.size} values does not match its description "
+                              f"({meta['size']} values)")
+        signals = {}
+        for sig in meta["signals"]:
+            shape = (branches, ticks, *sig["shape"])
+            at, size = int(sig["offset"]), int(np.prod(shape, dtype=np.int64))
+            signals[sig["name"]] = frame.values[at:at + size].reshape(shape).copy()
+        status = [BranchStatus(bool(s["ok"]), s["reason"], s["failed_tick"], int(s["ticks_done"]))
+                  for s in meta["status"]]
+        kept = [None if k is None else Snapshot(int(k["snapshot"]), int(k["tick"])) for k in meta["snapshots"]]
+        return cls(signals, status, kept, ticks, frame.seq, str(meta["backend"]), float(meta["wall_s"]),
+                   [int(e) for e in meta["evicted"]])
 
 
 class BrainClient:
@@ -183,7 +233,7 @@ class BrainClient:
             raise ERRORS.get(kind, WorldRefusedError)(kind, message, name)
         data = sample.payload.to_bytes()
         if data[:4] == frames.MAGIC:  # no JSON reply starts so
-            return frames.unpack(data, frames.STATE)
+            return frames.unpack(data)
         body = json.loads(data)
         if self._instance is None:
             self._instance = int(body["instance"])
@@ -289,6 +339,32 @@ class BrainClient:
     def status(self) -> dict[str, Any]:
         return self.call("status")
 
+    def batch(self, ticks: int, *, branches: int | None = None,
+              starts: Snapshot | int | Sequence[Snapshot | int] | None = None,
+              inputs: Mapping[str, Any] | None = None, params: Mapping[str, Any] | None = None,
+              record: Sequence[str] = (), keep_states: bool = False, timeout: float | None = None) -> BatchReply:
+        """``branches`` futures of the world, ``ticks`` ticks each, in one call; the world is not changed.
+        As `dynabrain.orchestrator.brain.Batch.run`: ``starts`` None (the world now), a snapshot, or one per
+        branch; ``inputs`` port -> values ``(ticks, *port)`` or ``(branches, ticks, *port)``; ``params``
+        run-time parameter -> a value, or one per branch; ``record`` the signals returned. With
+        ``keep_states`` each branch's final state becomes a snapshot (`restore` continues from it). The
+        server's backend runs it; pass a ``timeout`` (s) long enough for the work."""
+        if isinstance(starts, Sequence):
+            starts = [_snapshot_id(s) for s in starts]
+        elif starts is not None:
+            starts = _snapshot_id(starts)
+        frame = self.call("batch", timeout, ticks=_integer(ticks, "ticks"),
+                          branches=None if branches is None else _integer(branches, "branches"), starts=starts,
+                          inputs={str(n): _finite_list(v, str(n)) for n, v in (inputs or {}).items()},
+                          params={str(n): p.plain(v) for n, v in (params or {}).items()},
+                          record=[record] if isinstance(record, str) else list(record), keep_states=keep_states)
+        if not isinstance(frame, frames.Frame) or frame.kind != frames.BATCH:
+            raise BridgeError(f"batch: the server did not answer with a batch frame ({type(frame).__name__})")
+        if self._instance is not None and frame.source != self._instance:
+            raise BridgeError("batch frame from another server instance")
+        self.last_tick = frame.seq
+        return BatchReply.from_frame(frame)
+
     # -- views and streams ----------------------------------------------------------------------------------
     def view(self, signals: Sequence[str] | str) -> View:
         """Register signals (names or patterns) to read as one binary frame (`read`, `tick(view=)`)."""
@@ -301,6 +377,8 @@ class BrainClient:
         self.call("drop_view", view=view.id)
 
     def _frame(self, frame: frames.Frame, view: View) -> StateFrame:
+        if frame.kind != frames.STATE:
+            raise BridgeError(f"expected a state frame, got a {frames.KINDS[frame.kind]} frame")
         if frame.aux != view.id or frame.values.size != view.size:
             raise BridgeError(f"frame of view {frame.aux} with {frame.values.size} values does not match view "
                               f"{view.id} ({view.size} values)")
@@ -409,6 +487,27 @@ class BrainClient:
 
 
 _CACHED_CALLS = frozenset({"tick", "read", "backtick", "status"})
+
+
+def _snapshot_id(snapshot: Snapshot | int) -> int:
+    return snapshot.id if isinstance(snapshot, Snapshot) else _integer(snapshot, "a snapshot id")
+
+
+def _integer(value: Any, what: str) -> Any:
+    """An integer as JSON writes it (numpy's integers too); anything else goes on for the table's check to
+    refuse, naming the field."""
+    return int(value) if isinstance(value, (int, np.integer)) and not isinstance(value, bool) else value
+
+
+def _finite_list(values: Any, name: str) -> list[Any]:
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise BadRequestError("bad_request", f"inputs[{name!r}]: not an array of numbers ({exc}); nothing sent",
+                              "batch") from None
+    if not np.isfinite(arr).all():
+        raise BadRequestError("bad_request", f"inputs[{name!r}]: NaN or infinite values; nothing sent", "batch")
+    return arr.tolist()
 
 
 def _targets(targets: Sequence[float] | dict[str, float]) -> list[float] | dict[str, float]:

@@ -1,18 +1,20 @@
 """The bridge's wire format, binary part: one frame layout for state streams, state replies, robot
-state, robot commands and shadow comparisons (see `PROTOCOL.md`).
+state, robot commands, shadow comparisons and batch replies (see `PROTOCOL.md`).
 
 A frame is a 40-byte little-endian header and ``count`` float64 values::
 
     offset  size  field
     0       4     magic  b"DBF1"
-    4       2     kind   u16  (STATE 1, ROBOT_STATE 2, ROBOT_CMD 3, SHADOW 4)
+    4       2     kind   u16  (STATE 1, ROBOT_STATE 2, ROBOT_CMD 3, SHADOW 4, BATCH 5)
     6       2     flags  u16  (per kind)
     8       8     source u64  (the server instance, or the robot's session number)
     16      8     seq    i64  (tick for STATE; a sequence number otherwise)
     24      8     stamp  i64  (ns: simulated time for STATE; wall-clock time since the epoch otherwise)
-    32      4     aux    u32  (view id for STATE; joint count for robot frames; deadline in us for ROBOT_CMD)
+    32      4     aux    u32  (view id for STATE; joint count for robot frames; deadline in us for ROBOT_CMD;
+                              the length of the JSON description for BATCH)
     36      4     count  u32  number of float64 values that follow
     40      8*count values
+    ...     aux   BATCH only: a JSON description of the values (UTF-8), after them
 
 Decoding checks the magic, the kind, the length against ``count`` and the limits, so a malformed frame
 is refused with a message saying what is wrong, never half-read.
@@ -33,8 +35,11 @@ HEADER_SIZE = HEADER.size
 MAX_VALUES = 1 << 20
 """At most a million values (8 MiB) in one frame."""
 
-STATE, ROBOT_STATE, ROBOT_CMD, SHADOW = 1, 2, 3, 4
-KINDS = {STATE: "state", ROBOT_STATE: "robot state", ROBOT_CMD: "robot command", SHADOW: "shadow"}
+MAX_META = 1 << 24
+"""At most 16 MiB of JSON after the values of a BATCH frame."""
+
+STATE, ROBOT_STATE, ROBOT_CMD, SHADOW, BATCH = 1, 2, 3, 4, 5
+KINDS = {STATE: "state", ROBOT_STATE: "robot state", ROBOT_CMD: "robot command", SHADOW: "shadow", BATCH: "batch"}
 
 # robot modes (ROBOT_STATE flags)
 DISABLED, ENABLED, SAFE_STOP = 0, 1, 2
@@ -48,7 +53,8 @@ assert HEADER_SIZE == 40
 
 @dataclass(frozen=True)
 class Frame:
-    """A decoded frame; ``values`` is a read-only float64 array over the received bytes."""
+    """A decoded frame; ``values`` is a read-only float64 array over the received bytes; ``meta`` the
+    JSON description that follows the values of a BATCH frame (empty for the other kinds)."""
 
     kind: int
     flags: int
@@ -57,8 +63,11 @@ class Frame:
     stamp: int
     aux: int
     values: np.ndarray
+    meta: bytes = b""
 
     def pack(self) -> bytes:
+        if self.kind == BATCH:
+            return batch(self.values, self.meta, source=self.source, seq=self.seq, stamp=self.stamp)
         return pack(self.kind, self.values, flags=self.flags, source=self.source, seq=self.seq, stamp=self.stamp,
                     aux=self.aux)
 
@@ -76,6 +85,14 @@ def pack_header(kind: int, count: int, *, flags: int = 0, source: int = 0, seq: 
     return HEADER.pack(MAGIC, kind, flags, source, seq, stamp, aux, count)
 
 
+def batch(values: np.ndarray, meta: bytes, *, source: int = 0, seq: int = 0, stamp: int = 0) -> bytes:
+    """A BATCH frame: ``values`` (float64, flattened) then ``meta``, the JSON that describes them."""
+    if len(meta) > MAX_META:
+        raise ProtocolError(f"batch frame: {len(meta)} bytes of description, over the limit of {MAX_META}")
+    data = np.ascontiguousarray(values, dtype="<f8").reshape(-1)
+    return HEADER.pack(MAGIC, BATCH, 0, source, seq, stamp, len(meta), data.size) + data.tobytes() + meta
+
+
 def unpack(payload: bytes | bytearray | memoryview, expect: int | None = None, *, finite: bool = False) -> Frame:
     """Decode a frame; raises `ProtocolError` naming what is wrong. ``expect``: the kind required;
     ``finite``: refuse NaN and infinities (robot frames)."""
@@ -91,12 +108,18 @@ def unpack(payload: bytes | bytearray | memoryview, expect: int | None = None, *
         raise ProtocolError(f"expected a {KINDS[expect]} frame, got a {KINDS[kind]} frame")
     if count > MAX_VALUES:
         raise ProtocolError(f"frame declares {count} values, over the limit of {MAX_VALUES}")
-    if size != HEADER_SIZE + 8 * count:
-        raise ProtocolError(f"frame declares {count} values ({HEADER_SIZE + 8 * count} bytes) but has {size} bytes")
+    extra = aux if kind == BATCH else 0
+    if extra > MAX_META:
+        raise ProtocolError(f"batch frame declares {extra} bytes of description, over the limit of {MAX_META}")
+    want = HEADER_SIZE + 8 * count + extra
+    if size != want:
+        raise ProtocolError(f"frame declares {count} values" + (f" and {extra} bytes of description" if extra else "")
+                            + f" ({want} bytes) but has {size} bytes")
     values = np.frombuffer(payload, dtype="<f8", count=count, offset=HEADER_SIZE)
     if finite and not np.isfinite(values).all():
         raise ProtocolError(f"{KINDS[kind]} frame holds NaN or infinite values")
-    return Frame(kind, flags, source, seq, stamp, aux, values)
+    meta = bytes(payload[HEADER_SIZE + 8 * count:]) if extra else b""
+    return Frame(kind, flags, source, seq, stamp, aux, values, meta)
 
 
 def robot_state(q: np.ndarray, qd: np.ndarray, *, mode: int, source: int, seq: int, stamp_ns: int) -> bytes:

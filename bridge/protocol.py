@@ -34,6 +34,10 @@ MAX_INPUT_BYTES = 64 * 1024
 """Largest brain input (``in/set``, ``in/motion``) accepted."""
 MAX_TICKS = 1_000_000
 MAX_NAMES = 10_000
+MAX_BATCH_BYTES = 8 * 1024 * 1024
+"""Largest ``batch`` command accepted (its inputs are arrays of ticks), under the session's 16 MiB messages."""
+MAX_BATCH_BRANCHES = 4096
+"""Most branches of one ``batch`` call (each server also caps branches x ticks: ``--batch-max-ticks``)."""
 WORLD_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}$")
 JSON_ENCODING = "application/json"
 FRAME_ENCODING = "application/octet-stream;dynabrain.frame.v1"
@@ -185,6 +189,28 @@ class AcquireArgs(_Strict):
     """Seconds the hold lasts without a call from its brain."""
 
 
+SnapshotId = Annotated[int, Field(ge=0)]
+
+
+class BatchArgs(_Strict):
+    """N futures of the served world stepped together (`dynabrain.orchestrator.brain.Batch`); the world
+    itself is not changed."""
+
+    ticks: Annotated[int, Field(ge=1, le=MAX_TICKS)]
+    branches: Annotated[int, Field(ge=1, le=MAX_BATCH_BRANCHES)] | None = None
+    """How many futures; may be left out when ``starts`` lists one snapshot per branch."""
+    starts: SnapshotId | Annotated[list[SnapshotId], Field(min_length=1, max_length=MAX_BATCH_BRANCHES)] | None = None
+    """Where the branches start: null (the world now), a snapshot id (every branch), or one id per branch."""
+    inputs: Annotated[dict[Name, list[Any]], Field(max_length=MAX_NAMES)] = {}
+    """Input port -> finite numbers of shape ``(ticks, *port)`` (every branch) or ``(branches, ticks, *port)``."""
+    params: Annotated[dict[Name, Value], Field(max_length=MAX_NAMES)] = {}
+    """Run-time parameter -> one value for every branch, or a list of one value per branch."""
+    record: Annotated[list[Name], Field(max_length=MAX_NAMES)] = []
+    """Signals to return, each ``(branches, ticks, *shape)``: row k is the value after tick k+1."""
+    keep_states: bool = False
+    """Keep each branch's final state as a new snapshot of the served world (``restore`` continues from it)."""
+
+
 class RobotRef(_Strict):
     robot: Name
 
@@ -221,6 +247,8 @@ class Call:
     otherwise by the world: ``WorldService.do_<call>``."""
     slow: bool = False
     """Always run on the server's worker thread (it may take long), never on the Zenoh thread that delivered it."""
+    max_bytes: int = MAX_COMMAND_BYTES
+    """Largest command payload accepted for it."""
 
     @property
     def doc(self) -> str:
@@ -252,6 +280,12 @@ TABLE: dict[str, Call] = {
     "snapshot": Call(NoArgs, "", "`{snapshot: id, tick, evicted}` (the server keeps 64; older ones are evicted)"),
     "restore": Call(SnapshotRef, "`snapshot`", ""),
     "drop_snapshot": Call(SnapshotRef, "`snapshot`", ""),
+    "batch": Call(BatchArgs, "`ticks`, `branches`, `starts` (null, a snapshot id, or one per branch), `inputs` "
+                  "(`{port: (ticks, *port) or (branches, ticks, *port) numbers}`), `params` (`{name: value or one per "
+                  "branch}`), `record` (signals), `keep_states` (default false); the command may be 8 MiB",
+                  "a BATCH frame: the recorded arrays `(branches, ticks, *shape)`, each branch's status, and with "
+                  "`keep_states` each final state's new snapshot id; the world is unchanged", slow=True,
+                  max_bytes=MAX_BATCH_BYTES),
     "fork": Call(ForkArgs, "`name` (optional)", "`{world: <fork name>, tick}`", server=True, slow=True),
     "close": Call(NoArgs, "(on a fork)", "", server=True, slow=True),
     "status": Call(NoArgs, "", "the world's status, its stream layout, robots, and `server` (brains, holder, forks, "
@@ -367,7 +401,7 @@ def decode_command(call: str, payload: bytes) -> tuple[Envelope, BaseModel]:
         from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
         raise ProtocolError(f"unknown call {call!r}" + did_you_mean(call, TABLE), "unknown_call")
-    env = _parse(model, payload, MAX_COMMAND_BYTES, call)
+    env = _parse(model, payload, TABLE[call].max_bytes, call)
     if len(payload) <= 512:
         if len(_RECENT) >= _RECENT_MAX:
             _RECENT.clear()
@@ -390,10 +424,8 @@ def decode_input(model: type[BaseModel], payload: bytes, what: str) -> BaseModel
 def _parse(model: type[BaseModel], payload: bytes, limit: int, what: str) -> Any:
     if len(payload) > limit:
         raise ProtocolError(f"{what}: payload of {len(payload)} bytes is over the limit of {limit}")
-    if not payload:
-        return model()
     try:
-        return model.model_validate_json(payload)
+        return model.model_validate_json(payload) if payload else model()
     except ValidationError as exc:
         raise ProtocolError(f"{what}: " + describe(exc)) from None
 
@@ -459,7 +491,8 @@ def schema() -> dict[str, Any]:
                        "follow the call's model (x-calls). Binary frames are described in PROTOCOL.md.",
         "x-calls": calls,
         "x-read-only-calls": sorted(READ_ONLY),
-        "x-limits": {"command_bytes": MAX_COMMAND_BYTES, "input_bytes": MAX_INPUT_BYTES, "ticks": MAX_TICKS},
+        "x-limits": {"command_bytes": MAX_COMMAND_BYTES, "input_bytes": MAX_INPUT_BYTES, "ticks": MAX_TICKS,
+                     "batch_bytes": MAX_BATCH_BYTES, "batch_branches": MAX_BATCH_BRANCHES},
         "$defs": dict(sorted(defs.items())),
     }
 

@@ -7,6 +7,7 @@
 - ``alive`` is the world's liveliness token; brains declare ``brain/<id>``; a brain that holds the world
   (``acquire``) keeps others to read-only calls until it releases, its lease ends, or its token goes;
 - forks are served as worlds of their own, owned by the brain that made them;
+- ``batch`` runs N futures of a served world on one `Batch` per world, kept between calls (`batching`);
 - robot rigs link real robots (`robot_link`).
 
 Calls are serialised by one lock. A short call runs at once on the Zenoh thread that delivered it; a
@@ -34,6 +35,7 @@ from dynabrain.orchestrator.kernel.errors import DynabrainError, ModuleError, Ro
 from dynabrain.orchestrator.kernel.world import World
 
 from . import protocol as p
+from .batching import BatchSettings
 from .calls import DEFAULT_ALLOW_PYTHON, WorldService
 from .holds import BusyError, Hold
 from .loop import Loop
@@ -67,6 +69,8 @@ class ServeOptions:
     base_dir: str | None = None
     inline_ticks: int = 100
     """A ``tick`` of at most this many steps runs on the Zenoh thread that delivered it."""
+    batch: BatchSettings = field(default_factory=BatchSettings)
+    """How ``batch`` calls run on the served world (its forks run theirs with the ``serial`` backend)."""
 
 
 @dataclass
@@ -122,7 +126,8 @@ class BridgeServer:
         self.events.tick_of = lambda: self.world.tick_count
         self.hold = Hold(name, self.events.emit)
         service = WorldService(self.world, instance=self.instance, allow_python=opts.allow_python,
-                               base_dir=opts.base_dir, stream=self._stream_signals() if opts.decimate else ())
+                               base_dir=opts.base_dir, stream=self._stream_signals() if opts.decimate else (),
+                               batch=opts.batch)
         service.on_input_error = lambda msg: self.events.emit("input_error", message=msg)
         self.main = self._serve(name, service)
         self.stream = StateStream(s, name, service, self.events, max(opts.decimate, 1))
@@ -179,6 +184,7 @@ class BridgeServer:
         with self._call_lock:
             for served in list(self._served.values()):
                 served.undeclare()
+                served.service.close()  # the batch's workers
                 if served is not getattr(self, "main", None):
                     served.service.world.close()
             self._served.clear()
@@ -324,7 +330,8 @@ class BridgeServer:
             raise DynabrainError(f"a world named {name!r} is already served here")
         world = served.service.world.fork(name)
         svc = WorldService(world, instance=self.instance, allow_python=self.options.allow_python,
-                           base_dir=self.options.base_dir)
+                           base_dir=self.options.base_dir,
+                           batch=BatchSettings("serial", max_ticks=self.options.batch.max_ticks))
         svc.rigs = dict(served.service.rigs)
         self._serve(name, svc, owner=env.brain)
         self.events.emit("fork", world=name, brain=env.brain, tick=world.tick_count)
@@ -338,6 +345,7 @@ class BridgeServer:
     def _close_fork(self, served: _Served, reason: str) -> None:
         served.closed = True
         served.undeclare()
+        served.service.close()
         served.service.world.close()
         self._served.pop(served.name, None)
         self.events.emit("fork_closed", world=served.name, reason=reason)

@@ -89,17 +89,27 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
                                      "(default: dynabrain.*)")] = None,
           lease: LeaseOpt = None, mode: ModeOpt = None,
           start: Annotated[bool, typer.Option("--start", help="run the world's loop from the start")] = False,
-          realtime: Annotated[bool, typer.Option("--realtime", help="with --start: at real time")] = False) -> None:
+          realtime: Annotated[bool, typer.Option("--realtime", help="with --start: at real time")] = False,
+          batch_backend: Annotated[str, typer.Option(
+              "--batch-backend", help="how `batch` calls run the world's futures: auto, serial, processes or ray "
+                                      "(auto: worker processes when there is more than one core)")] = "auto",
+          batch_workers: Annotated[int | None, typer.Option(
+              "--batch-workers", help="worker processes (or Ray actors) of `batch` calls (default: every core)")
+          ] = None,
+          batch_max_ticks: Annotated[int, typer.Option(
+              "--batch-max-ticks", help="most branches x ticks in one `batch` call")] = 1_000_000) -> None:
     """Serve a world over Zenoh to remote brains (and robots) until interrupted."""
+    from dynabrain.bridge.batching import BatchSettings
     from dynabrain.bridge.calls import DEFAULT_ALLOW_PYTHON
     from dynabrain.bridge.server import BridgeServer, ServeOptions
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     settings = _settings(listen, connect, zenoh_config, lease, mode, ["tcp/127.0.0.1:7447"])
+    batch = BatchSettings(batch_backend, batch_workers, batch_max_ticks)
     sc, world = _build(scenario)
     options = ServeOptions(name=name, stream=stream, decimate=decimate, robots=_robots(robot),
                            deadline_ns=parse_duration_ns(deadline), base_dir=sc.dir,
-                           allow_python=DEFAULT_ALLOW_PYTHON if allow_python is None else allow_python)
+                           allow_python=DEFAULT_ALLOW_PYTHON if allow_python is None else allow_python, batch=batch)
     server = BridgeServer(world, settings, options)
     try:
         endpoints = server.open()
