@@ -38,8 +38,10 @@ from typing import Any
 
 import numpy as np
 
+from ..kernel import portable
 from ..kernel.errors import DynabrainError, WiringError
 from ..kernel.history import WorldState
+from ..kernel.observers import Imagined
 from ..kernel.world import World
 from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 
@@ -74,6 +76,27 @@ class BatchResult:
         """Ticks stepped per second of wall time, all branches together."""
         done = sum(s.ticks_done for s in self.status)
         return done / self.wall_s if self.wall_s > 0 else float("inf")
+
+    def imagine(self, world: World, name: str, branches: int | Sequence[int] | None = None,
+                start_tick: int | None = None) -> list[Imagined]:
+        """Keep branches of this batch as futures ``world`` imagined (`World.imagine`: a logged run writes
+        each to ``/imagined/<name>/<branch>/...``): ``branches`` (default: all), each with the ticks it
+        ran. A branch starts at ``start_tick``, or else at its final state's tick less the ticks it ran,
+        or else (no state kept) at the world's tick now."""
+        chosen = range(len(self.status)) if branches is None else [branches] if isinstance(
+            branches, (int, np.integer)) else list(branches)
+        kept = []
+        for b in chosen:
+            if isinstance(b, bool) or not isinstance(b, (int, np.integer)) or not 0 <= b < len(self.status):
+                raise DynabrainError(f"imagine: there is no branch {b!r} (the batch has {len(self.status)})")
+            done, state = self.status[b].ticks_done, self.states[b]
+            if done == 0 or not self.signals:
+                continue
+            start = start_tick if start_tick is not None else (
+                portable.decode(state).tick - done if state is not None else world.tick_count)
+            kept.append(world.imagine(name, start, {n: v[b, :done] for n, v in self.signals.items()}, branch=int(b)))
+        return kept
+
 
 
 class Batch:

@@ -30,7 +30,9 @@ from typing import Any
 
 import numpy as np
 
+from ..kernel import portable
 from ..kernel.errors import DynabrainError
+from ..kernel.observers import Imagined
 from ..kernel.world import World
 from .batch import Batch
 
@@ -117,6 +119,14 @@ class Plan:
     cost: float
     stats: PlanStats
     node: Node
+
+    def imagine(self, world: World, name: str, branch: int = 0) -> Imagined | None:
+        """Keep this plan's predicted trajectory as a future ``world`` imagined (`World.imagine`: a logged
+        run writes it to ``/imagined/<name>/<branch>/...``), from the tick of its start state. None when
+        the plan has no action (nothing was predicted)."""
+        if not self.actions or not self.trajectory:
+            return None
+        return world.imagine(name, portable.decode(self.states[0]).tick, self.trajectory, branch=branch)
 
     def execute(self, world: World) -> dict[str, np.ndarray]:
         """Run the plan's actions on ``world`` (from the plan's start state: import it first to compare

@@ -1,11 +1,13 @@
 """Observers: a logger, a bridge publisher or a viewer sees the world after each tick, read-only.
 
 They are told about rollbacks and restores, so a log never presents a discarded future as the run,
-and about edits (modules added or removed, parameters set, make, joints) as events.
+about edits (modules added or removed, parameters set, make, joints) as events, and about what the
+brain imagined (`World.imagine`: a predicted or planned branch it asks to keep, as `Imagined`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -28,6 +30,29 @@ class WorldEvent:
     kind: str
     detail: dict[str, Any] = field(default_factory=dict)
     source: str = "api"
+
+
+@dataclass(frozen=True)
+class Imagined:
+    """A future the brain imagined and asks to keep (`World.imagine`): branch ``branch`` of ``name``
+    (a plan, a batch of predictions), starting from the world's state at ``start_tick``. Row k of each
+    signal is its value after tick ``start_tick + k + 1`` (at ``(start_tick + k + 1) * dt_ns`` ns of
+    simulated time), shape ``(ticks, *signal shape)``; the arrays are read-only copies. ``units`` gives
+    each signal's unit ("" for a signal the world does not have). ``tick`` is the world's tick when it
+    was imagined."""
+
+    name: str
+    branch: int
+    start_tick: int
+    dt_ns: int
+    signals: Mapping[str, np.ndarray] = field(repr=False)
+    units: Mapping[str, str] = field(repr=False)
+    tick: int = 0
+
+    @property
+    def ticks(self) -> int:
+        """How many ticks it spans."""
+        return len(next(iter(self.signals.values())))
 
 
 class WorldView:
@@ -84,6 +109,10 @@ class Observer:
 
     def on_event(self, view: WorldView, event: WorldEvent) -> None:
         """An edit or a notable event."""
+
+    def on_imagined(self, view: WorldView, imagined: Imagined) -> None:
+        """The brain imagined a future and asks to keep it (`World.imagine`). It is not the run: a
+        rollback does not discard it."""
 
     def on_close(self, view: WorldView) -> None:
         """The world is closing."""

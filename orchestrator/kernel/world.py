@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import fnmatch
 import itertools
+import re
 import threading
 import time as _time
 import zlib
@@ -32,7 +33,7 @@ from .core import PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
 from .module import NO_PORTS, Module, Port, PortBinding, SetupContext
-from .observers import Observer, WorldEvent, WorldView
+from .observers import Imagined, Observer, WorldEvent, WorldView
 from .structure import (
     SAVE_NONE,
     SAVE_PARAMS,
@@ -49,6 +50,7 @@ from .suggest import did_you_mean
 from .units import NS_PER_S, format_duration, parse_duration_ns
 
 ScheduledAction = Callable[["World"], None]
+_IMAGINED_NAME = re.compile(r"[A-Za-z0-9_.-]{1,100}")
 
 
 class World:
@@ -589,6 +591,48 @@ class World:
         event = WorldEvent(self._tick, kind, detail, self._source)
         for obs in self._observers:
             obs.on_event(self._view, event)
+
+    def imagine(self, name: str, start_tick: int, signals: Mapping[str, Any], branch: int = 0) -> Imagined:
+        """Keep a future the brain imagined (a planned or predicted branch): tell every observer (an MCAP
+        log writes it to ``/imagined/<name>/<branch>/...``). ``signals`` maps a signal to its values after
+        each tick from ``start_tick`` on, shape ``(ticks, *signal shape)`` (``BatchResult.imagine`` and
+        ``Plan.imagine`` pass theirs). A signal of this world (``aa.pos`` is short for the core's) is
+        named in full and must have its shape; any other name is kept as given, with no unit. The world
+        does not change, and a rollback does not discard what was imagined."""
+        if not isinstance(name, str) or not _IMAGINED_NAME.fullmatch(name):
+            raise DynabrainError(f"imagine: the name {name!r} must be letters, digits, '_', '-' or '.'")
+        for what, value in (("start_tick", start_tick), ("branch", branch)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+                raise DynabrainError(f"imagine({name!r}): {what} must be an integer >= 0, got {value!r}")
+        if not isinstance(signals, Mapping) or not signals:
+            raise DynabrainError(f"imagine({name!r}): signals is a mapping of signal -> values (ticks, *shape)")
+        with self._lock:
+            self._check_open()
+            values: dict[str, np.ndarray] = {}
+            units: dict[str, str] = {}
+            ticks = None
+            for given, rows in signals.items():
+                try:
+                    arr = np.array(rows, dtype=np.float64)  # a copy: the caller may change its array
+                except (TypeError, ValueError) as exc:
+                    raise DynabrainError(f"imagine({name!r}): the values of {given} are not numbers: {exc}") from None
+                slot = self._resolve_signal(given) if isinstance(given, str) else None
+                full = self._full_signal_name(given) if slot is not None else given
+                if slot is not None and arr.shape[1:] != slot.shape:
+                    raise WiringError(f"imagine({name!r}): the values of {full} have shape {arr.shape}; ticks of a "
+                                      f"signal of shape {slot.shape} need (ticks, {', '.join(map(str, slot.shape))})")
+                if arr.ndim == 0 or (ticks is not None and len(arr) != ticks) or len(arr) == 0:
+                    raise DynabrainError(f"imagine({name!r}): every signal needs the same number (>= 1) of rows, "
+                                         f"one per tick; {given} has shape {arr.shape}")
+                ticks = len(arr)
+                arr.flags.writeable = False
+                values[str(full)] = arr
+                units[str(full)] = slot.port.unit if slot is not None else ""
+            imagined = Imagined(name, int(branch), int(start_tick), self.dt_ns, values, units, self._tick)
+            for obs in self._observers:
+                obs.on_imagined(self._view, imagined)
+            return imagined
+
 
     # -- the loop in a thread -------------------------------------------------------------------------
     def start(self, realtime: bool | float = False, *, until: float | None = None) -> None:
