@@ -28,7 +28,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from ..kernel.errors import Problem
-from ..kernel.yamlsrc import YamlSource
+from ..kernel.yamlsrc import YamlSource, read_yaml
 from .errors import FMUBuildError
 
 IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -127,11 +127,7 @@ def load_spec(folder: str | Path) -> FmuSpec:
     """Read and check ``folder/fmu.yaml``; raises `FMUBuildError` listing every problem."""
     folder = Path(folder)
     path = folder / SPEC_FILE
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise FMUBuildError(f"{path}: cannot read the FMU declaration: {exc.strerror}") from None
-    src = YamlSource(text, str(path))
+    src = read_yaml(path, "the FMU declaration")
     if src.problems:
         raise _fail(src.problems)
     if not isinstance(src.data, dict):
