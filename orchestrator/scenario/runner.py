@@ -39,25 +39,25 @@ def run_scenario(scenario: Scenario, world: World | None = None, *,
     world = world if world is not None else scenario.build()
     expectations = list(scenario.expectations)
     total = scenario.duration_ns // world.dt_ns
-    due: dict[int, list[Expectation]] = {}
-    for exp in expectations:
-        for tick in range(exp.start, exp.end + 1):
-            due.setdefault(tick, []).append(exp)
-    stops = sorted(set(due) | set(range(0, total + 1, chunk)) | {total})
-    namespace = namespace_for(world)
+    reader = namespace_for(world)
     factor = scenario.model.world.realtime if realtime is None else realtime
     factor = 1.0 if factor is True else (float(factor) if factor else None)
     wall0 = time.perf_counter()
     error = None
     try:
-        for stop in stops:
+        stop = world.tick_count
+        while True:
             if stop > world.tick_count:
                 _advance(world, stop - world.tick_count, factor, wall0)
-            for exp in due.get(world.tick_count, ()):
-                if exp.passed is not False:
-                    exp.check(world, namespace)
+            tick = world.tick_count
+            for exp in expectations:
+                if exp.start <= tick <= exp.end and exp.passed is not False:
+                    exp.check(world, reader)
             if progress is not None:
-                progress(world.tick_count, total)
+                progress(tick, total)
+            if tick >= total:
+                break
+            stop = _next_stop(tick, total, chunk, expectations)
     except Exception as exc:  # a failed tick has been rolled back; report it with the results
         error = str(exc)
     wall = time.perf_counter() - wall0
@@ -68,6 +68,16 @@ def run_scenario(scenario: Scenario, world: World | None = None, *,
     if own:
         world.close()
     return result
+
+
+def _next_stop(tick: int, total: int, chunk: int, expectations: list[Expectation]) -> int:
+    """The next tick to stop at: the end of this chunk of ``chunk`` ticks, the end of the run, or the
+    next tick an expectation is due (every tick of a ``during`` window)."""
+    stop = min(total, (tick // chunk + 1) * chunk)
+    for exp in expectations:
+        if exp.passed is not False and exp.end > tick:
+            stop = min(stop, exp.start if exp.start > tick else tick + 1)
+    return stop
 
 
 def _advance(world: World, n: int, factor: float | None, wall0: float) -> None:
