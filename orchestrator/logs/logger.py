@@ -15,13 +15,19 @@ it. A rollback that reaches further back than the window finds ticks already wri
 then rewritten on close (`logs.recover.rewrite`) so that those, too, move to ``/discarded/...``.
 ``dynabrain run`` cannot roll back (except a failed tick, which discards nothing), so it uses no window.
 
+**Imagined futures.** A branch the brain imagined and keeps (`World.imagine`; `on_imagined`) is
+written at once to its own ``/imagined/<name>/<branch>/...`` channels, at its own future ticks, with an
+``imagined`` event: it is not the run, so it never waits in the window and no rollback discards it.
+
 **Crash safety.** The file is written by a child process (`logs.sink`). If the simulation's process
 is killed, the child writes everything it was handed and finishes the file: only the ticks still
 waiting in the simulation's process are lost (the ``window``, plus at most ``batch`` ticks or
 ``flush_s / 2`` seconds of them). If both die, the chunk being filled is lost too (at most
-``chunk_bytes`` of messages, or ``flush_s`` seconds of them), and `dynabrain log recover` turns what is
-left into a valid file. With the defaults and no window (``dynabrain run``), a run at real time loses
-under half a second either way.
+``chunk_bytes`` of messages, ``chunk_s`` of simulated time or ``flush_s`` seconds of them), and
+`dynabrain log recover` turns what is left into a valid file. With the defaults and no window
+(``dynabrain run``), a run at real time loses under half a second either way. A file damaged later (a
+flipped bit, a bad copy) loses the chunks the damage touches: recover keeps every intact chunk after
+them too.
 
 **Cost.** The stepping thread copies the bus row into a preallocated block of shared memory (rows of
 consecutive ticks of one layout and epoch: a row's tick is its block's first tick plus its index, so
@@ -48,11 +54,20 @@ from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
 from ..kernel.errors import DynabrainError
-from ..kernel.observers import Observer, WorldEvent, WorldView
-from .messages import Event, Layout, Metadata, Release, Span
+from ..kernel.observers import Imagined, Observer, WorldEvent, WorldView
+from .messages import Event, ImaginedRows, Layout, Metadata, Release, Span
 from .meta import run_metadata
 from .scene import SceneDrawing
-from .schema import METADATA_NAME, BusCodec, FieldNumbers, event_bytes, foxglove_descriptor, pose_columns
+from .schema import (
+    IMAGINED,
+    METADATA_NAME,
+    BusCodec,
+    FieldNumbers,
+    event_bytes,
+    foxglove_descriptor,
+    imagined_frame,
+    pose_columns,
+)
 from .sink import NOTHING_WRITTEN, ProcessSink, ThreadSink
 
 _log = logging.getLogger("dynabrain.mcap")
@@ -90,23 +105,27 @@ class McapLogger(Observer):
     ``decimate``: poses every that many ticks; ``scene_every``: the scene every that many ticks
     (default: one simulated second) and after each `make`; ``window``: ticks held back for rollbacks;
     ``batch``: ticks encoded and written together (at most ``flush_s / 2`` s after the first is due);
-    ``chunk_bytes``, ``flush_s``, ``level``: chunk size and age, zstd level; ``writer``: ``"process"``
-    (a child process writes the file; the default) or ``"thread"`` (a thread of this process).
+    ``chunk_bytes``, ``chunk_s``, ``flush_s``, ``level``: a chunk's size at most, the simulated time it
+    spans at most, its age (wall time) at most, the zstd level; ``writer``: ``"process"`` (a child
+    process writes the file; the default) or ``"thread"`` (a thread of this process).
     """
 
     def __init__(self, path: str | os.PathLike[str], *, decimate: int = 1, scene_every: int | None = None,
-                 window: int = 64, batch: int = 256, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
-                 level: int = -1, writer: str = "process"):
+                 window: int = 64, batch: int = 256, chunk_bytes: int = 1 << 20, chunk_s: float = 1.0,
+                 flush_s: float = 0.25, level: int = -1, writer: str = "process"):
         for name, value, low in (("decimate", decimate, 1), ("window", window, 0), ("batch", batch, 1),
                                  ("scene_every", scene_every or 1, 1), ("chunk_bytes", chunk_bytes, 1)):
             if not isinstance(value, int) or value < low:
                 raise DynabrainError(f"McapLogger: {name} must be an integer >= {low}, got {value!r}")
+        if not isinstance(chunk_s, (int, float)) or isinstance(chunk_s, bool) or not 0 < chunk_s < 1e9:
+            raise DynabrainError(f"McapLogger: chunk_s must be a positive number of seconds, got {chunk_s!r}")
         if writer not in ("process", "thread"):
             raise DynabrainError(f"McapLogger: writer must be 'process' or 'thread', got {writer!r}")
         self.path = os.fspath(path)
         self.writer = writer
         self.decimate, self.scene_every, self.window, self.batch = decimate, scene_every, window, batch
-        self._writer_args = {"chunk_bytes": chunk_bytes, "flush_s": flush_s, "level": level}
+        self._writer_args = {"chunk_bytes": chunk_bytes, "chunk_ns": max(1, round(chunk_s * 1e9)), "flush_s": flush_s,
+                             "level": level}
         self._max_wait = flush_s / 2
         self._drained_at = time.monotonic()
         self._sink: ThreadSink | ProcessSink | None = None
@@ -218,6 +237,28 @@ class McapLogger(Observer):
         if cause == "restore":
             self._refresh_layout(view)
             self._push(view, view.bus())
+
+    def on_imagined(self, view: WorldView, imagined: Imagined) -> None:
+        """A branch the brain imagined: written at once to ``/imagined/<name>/<branch>/...`` (see
+        `logs.schema`), with an ``imagined`` event; it never waits in the window, and rollbacks leave it."""
+        if self.closed:
+            return
+        name, branch, start, ticks = imagined.name, imagined.branch, imagined.start_tick, imagined.ticks
+        slots, offsets, at = [], {}, 0
+        for signal, values in imagined.signals.items():
+            slots.append((signal, values.shape[1:], imagined.units.get(signal, "")))
+            offsets[signal] = (at, values.shape[1:])
+            at += int(np.prod(values.shape[1:], dtype=np.int64))
+        rows = np.concatenate([v.reshape(ticks, -1) for v in imagined.signals.values()], axis=1)
+        bodies, cols = _imagined_poses(view.core.name if view.core is not None else None, offsets)
+        scene = b""
+        if bodies and self._scene is not None:
+            frames = [imagined_frame(name, branch, b) for b in bodies]
+            scene = self._scene.imagined(bodies, frames, (start + 1) * self._dt, ticks * self._dt)
+        self._sink.call(ImaginedRows(name, branch, start, self._epoch, slots, rows, bodies, cols, scene))
+        self._event("imagined", view.tick, {"name": name, "branch": branch, "start_tick": start, "ticks": ticks,
+                                            "signals": list(imagined.signals), "topic": f"{IMAGINED}/{name}/{branch}",
+                                            "bodies": bodies}, "api")
 
     def on_close(self, view: WorldView) -> None:
         try:
@@ -384,3 +425,18 @@ class McapLogger(Observer):
         body = {"seq": self._seq, "tick": tick, "time": tick * self._dt / 1e9, "epoch": self._epoch, "kind": kind,
                 "source": source, "detail": detail}
         self._sink.call(Event(tick * self._dt, event_bytes(body), self._epoch))
+
+
+def _imagined_poses(core: str | None, offsets: dict[str, tuple[int, tuple[int, ...]]]) -> tuple[list[str], np.ndarray]:
+    """The bodies whose ``<core>.<body>.pos`` (3) and ``.quat`` (4) are among an imagined branch's
+    signals (``offsets``: signal -> its first column and shape), and their 7 columns (x y z qw qx qy qz)."""
+    bodies, cols = [], []
+    for signal, (pos, shape) in offsets.items():
+        if core is None or not signal.startswith(core + ".") or not signal.endswith(".pos") or shape != (3,):
+            continue
+        body = signal[len(core) + 1:-len(".pos")]
+        quat, quat_shape = offsets.get(f"{core}.{body}.quat", (0, ()))
+        if quat_shape == (4,):
+            bodies.append(body)
+            cols.append([pos, pos + 1, pos + 2, quat, quat + 1, quat + 2, quat + 3])
+    return bodies, np.array(cols, dtype=np.intp).reshape(-1, 7)

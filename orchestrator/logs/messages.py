@@ -8,8 +8,8 @@ on the hot path.
 They live here, not in `logs.sink`: the child runs ``python -m dynabrain.orchestrator.logs.sink``, where
 that module is ``__main__``, and a class defined there would be a different class in each process.
 
-Parent to child: `Open` (first, once), then any of `Metadata`, `Layout`, `Event` and `Rows`, in the
-order the logger made them, then `Finish` or `Abort`. Child to parent: `Ready` (or `Failed`) after
+Parent to child: `Open` (first, once), then any of `Metadata`, `Layout`, `Event`, `ImaginedRows` and
+`Rows`, in the order the logger made them, then `Finish` or `Abort`. Child to parent: `Ready` (or `Failed`) after
 `Open`, `Done` after each `Rows`, `Failed` when a write fails, `Finished` after `Finish`.
 """
 
@@ -51,7 +51,25 @@ class Event(NamedTuple):
     epoch: int
 
 
-Call = Metadata | Layout | Event
+class ImaginedRows(NamedTuple):
+    """A branch the brain imagined (`kernel.observers.Imagined`), for ``/imagined/<name>/<branch>/...``:
+    ``values`` are its rows (ticks, size), the values after ticks ``start_tick + 1`` on, laid out as
+    ``slots`` say ((signal, shape, unit), one after the other); ``bodies`` and ``cols``: each body
+    whose pose the rows hold, and its 7 columns (x y z qw qx qy qz); ``scene``: a ``SceneUpdate``
+    drawing those bodies in their imagined frames (empty: none)."""
+
+    name: str
+    branch: int
+    start_tick: int
+    epoch: int
+    slots: list[tuple[str, tuple[int, ...], str]]
+    values: np.ndarray
+    bodies: list[str]
+    cols: np.ndarray
+    scene: bytes
+
+
+Call = Metadata | Layout | Event | ImaginedRows
 """A writer call the logger makes (`ThreadSink.call`, `ProcessSink.call`)."""
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from .meta import RunInfo
 from .scan import Channel, Header, LogError, Message, Metadata, ScanReport, Schema, scan
-from .schema import DISCARDED, FORMAT, METADATA_NAME, TOPIC_BUS, TOPIC_EVENTS, BusCodec
+from .schema import DISCARDED, FORMAT, IMAGINED, METADATA_NAME, TOPIC_BUS, TOPIC_EVENTS, BusCodec
 
 
 def family(topic: str) -> str:
@@ -38,7 +38,8 @@ class LogIndex:
     times: dict[int, tuple[int, int]] = field(default_factory=dict)
     events: list[dict] = field(default_factory=list)
     keys: dict[str, list[tuple[int, int, int]]] = field(default_factory=dict)
-    """Per topic family: (epoch, tick, file position) of each message."""
+    """Per topic family: (epoch, tick, file position) of each message (``/imagined/...`` topics have none:
+    they are not the run, and rollbacks do not apply to them)."""
 
     @property
     def info(self) -> RunInfo | None:
@@ -101,7 +102,7 @@ def read_index(path: str | os.PathLike[str], *, lenient: bool = False) -> LogInd
                 continue
             if ch.topic == TOPIC_EVENTS and ch.encoding == "json" and dynabrain:
                 index.events.append(_event(rec, index.path))
-            else:
+            elif not ch.topic.startswith(IMAGINED + "/"):  # what a brain imagined is no part of the run
                 index.keys.setdefault(family(ch.topic), []).append((rec.sequence, rec.log_time // dt_ns, pos))
         elif isinstance(rec, Channel):
             index.channels[rec.id] = rec

@@ -2,10 +2,13 @@
 
 `rewrite` copies a file record by record into a new, complete one (summary, indexes, footer). In a
 dynabrain log it also moves every message that is not part of the run (see `logs.read.final_mask`) to
-its ``/discarded/...`` topic, so ``/bus``, ``/tf`` and ``/scene`` hold exactly what finally happened.
-With ``lenient=True`` (``dynabrain log recover``) it stops before the first incomplete or damaged
-record instead of failing: every complete chunk is kept. Message order, times and sequence numbers
-are kept as they were.
+its ``/discarded/...`` topic, so ``/bus``, ``/tf`` and ``/scene`` hold exactly what finally happened
+(``/imagined/...`` topics are left as they are: what a brain imagined is no discarded future).
+With ``lenient=True`` (``dynabrain log recover``) a damaged record is skipped instead of failing: the
+scan resynchronises on the next valid chunk (`logs.scan`), so every intact chunk is kept, before and
+after the damage, and a file cut short keeps everything up to its last complete chunk. A message whose
+channel was declared only in lost bytes cannot be decoded and is dropped (counted). Message order,
+times and sequence numbers are kept as they were.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import os
 from dataclasses import dataclass
 
 from .read import LogIndex, family, read_index
-from .scan import Channel, Message, Schema, scan
+from .scan import Channel, Damage, Message, Schema, scan
 from .schema import DISCARDED, TOPIC_BUS
 from .write import McapWriter
 
@@ -22,16 +25,24 @@ from .write import McapWriter
 @dataclass(frozen=True)
 class RewriteReport:
     complete: bool
-    """The source had its footer (nothing was lost)."""
+    """The source was whole: its footer read and nothing damaged (nothing was lost)."""
     chunks: int
+    """Chunks of the source read whole."""
     messages: int
     lost_bytes: int
-    """Bytes after the last complete record of the source (an unfinished chunk)."""
+    """Bytes of the source skipped: damaged regions and an unfinished end."""
     problem: str
+    """What was wrong with the source (the first damage, and how many more), or empty."""
     ticks: tuple[int, int] | None
     """First and last tick of the run kept, for a dynabrain log."""
     moved: int
     """Messages moved to /discarded/... topics."""
+    damaged: tuple[Damage, ...] = ()
+    """The regions of the source that were skipped, in file order."""
+    dropped: int = 0
+    """Messages dropped because their channel was declared only in lost bytes."""
+    run_ticks: int = 0
+    """Ticks of the run kept (bus messages that are the run), for a dynabrain log."""
 
 
 def rewrite(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, lenient: bool = False) -> RewriteReport:
@@ -45,7 +56,7 @@ def rewrite(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, lenient
     try:
         for name, values in index.metadata.items():
             writer.add_metadata(name, values)
-        moved = _copy_records(src, index, writer, finals, lenient)
+        moved, dropped = _copy_records(src, index, writer, finals, lenient)
         writer.finish()
     except BaseException:
         writer.close()
@@ -53,18 +64,21 @@ def rewrite(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, lenient
             os.remove(part)
         raise
     os.replace(part, dst)
-    return RewriteReport(index.report.complete, index.report.chunks, writer.messages,
-                         index.report.size - index.report.good_bytes if not index.report.complete else 0,
-                         index.report.problem, _tick_range(index, finals), moved)
+    report = index.report
+    run = _run_ticks(index, finals)
+    return RewriteReport(report.complete and not report.damaged, report.chunks, writer.messages, report.lost_bytes,
+                         report.problem, (min(run), max(run)) if run else None, moved, tuple(report.damaged),
+                         dropped, len(run))
 
 
 def _copy_records(src: str, index: LogIndex, writer: McapWriter, finals: dict[str, set[int]] | None,
-                  lenient: bool) -> int:
+                  lenient: bool) -> tuple[int, int]:
+    """Copy every record; returns (messages moved to /discarded/..., messages dropped)."""
     channels: dict[int, Channel] = {}
     schemas: set[int] = set()
     moved_ids: dict[int, int] = {}
     next_id = max(index.channels, default=0) + 1
-    moved = pos = 0
+    moved = dropped = pos = 0
     for rec in scan(src, lenient=lenient):
         if isinstance(rec, Schema) and rec.id not in schemas:
             schemas.add(rec.id)
@@ -76,7 +90,10 @@ def _copy_records(src: str, index: LogIndex, writer: McapWriter, finals: dict[st
             pos += 1
             cid = rec.channel_id
             ch = channels.get(cid)
-            if finals is not None and ch is not None and family(ch.topic) in finals:
+            if ch is None:  # its channel was declared in lost bytes: nothing can read it
+                dropped += 1
+                continue
+            if finals is not None and family(ch.topic) in finals:
                 fam = family(ch.topic)
                 target = fam if pos in finals[fam] else DISCARDED + fam
                 if target != ch.topic:
@@ -87,14 +104,13 @@ def _copy_records(src: str, index: LogIndex, writer: McapWriter, finals: dict[st
                         next_id += 1
                     cid = moved_ids[cid]
             writer.add_message(cid, rec.log_time, rec.data, rec.sequence)
-    return moved
+    return moved, dropped
 
 
-def _tick_range(index: LogIndex, finals: dict[str, set[int]] | None) -> tuple[int, int] | None:
+def _run_ticks(index: LogIndex, finals: dict[str, set[int]] | None) -> list[int]:
     if finals is None or TOPIC_BUS not in finals:
-        return None
-    ticks = [t for _e, t, p in index.keys[TOPIC_BUS] if p in finals[TOPIC_BUS]]
-    return (min(ticks), max(ticks)) if ticks else None
+        return []
+    return [t for _e, t, p in index.keys[TOPIC_BUS] if p in finals[TOPIC_BUS]]
 
 
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str] | None = None) -> tuple[str, RewriteReport]:

@@ -89,5 +89,7 @@ def describe(event: dict) -> str:
                                                                                 else "")
     if kind == "error":
         return str(d.get("message"))
+    if kind == "imagined":
+        return f"{d.get('topic')}: {d.get('ticks')} ticks from tick {d.get('start_tick')}"
     text = json.dumps(d, separators=(", ", ": "))
     return text if len(text) < 100 else text[:97] + "..."

@@ -2,9 +2,15 @@
 
 `scan` yields the records of a file (the records inside chunks, decompressed, in place of the chunk)
 and tells, at the end, whether the file was complete. A file that stops in the middle of a record (a
-run that was killed, a copy cut short) raises `TruncatedLogError` in strict mode; in lenient mode (what
-`dynabrain log recover` uses) the scan stops before the first incomplete or damaged record and reports
-where. Bad input gets one clear error naming the file.
+run that was killed, a copy cut short) or holds a damaged one raises `TruncatedLogError` in strict
+mode. In lenient mode (what `dynabrain log recover` uses) a damaged record is skipped: the scan
+resynchronises on the next valid chunk (a chunk record whose fields agree with each other and whose
+data decompresses to its size and CRC), as the official MCAP tools skip an invalid chunk, and goes on;
+a file cut short ends the scan. There, a record of an unknown opcode, or a message outside chunks in a
+chunked file, counts as damage too (reading out of step lands on such bytes). Every region skipped is
+reported (`ScanReport.damaged`). Since each chunk declares its own channels (`logs.write`), damage
+loses the messages of the damaged chunk only.
+Bad input gets one clear error naming the file.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import BinaryIO
 
+import numpy as np
 import zstandard
 
 from ..kernel.errors import DynabrainError
@@ -32,6 +39,9 @@ from .write import (
 )
 
 MAX_RECORD = 1 << 32
+RESYNC_WINDOW = 4 << 20
+"""Bytes read at a time while looking for the next valid chunk after a damaged record."""
+_COMPRESSIONS = ("", "zstd", "lz4")
 
 
 class LogError(DynabrainError):
@@ -79,6 +89,15 @@ class Header:
     library: str
 
 
+@dataclass(frozen=True)
+class Damage:
+    """Bytes ``[start, end)`` of a file that a lenient scan skipped, and why."""
+
+    start: int
+    end: int
+    why: str
+
+
 @dataclass
 class ScanReport:
     """How a scan ended."""
@@ -91,9 +110,22 @@ class ScanReport:
     """Bytes up to the end of the last record read whole."""
     size: int = 0
     problem: str = ""
-    """Why the scan stopped early (lenient mode), empty when it did not."""
+    """What was wrong (lenient mode): the first damage, and how many more; empty when nothing was."""
+    damaged: list[Damage] = field(default_factory=list)
+    """Regions skipped (lenient mode), in file order; a file cut short ends with one that reaches its end."""
     unknown: dict[int, int] = field(default_factory=dict)
     """Records of opcodes this reader does not know (a newer MCAP version), by opcode."""
+
+    @property
+    def lost_bytes(self) -> int:
+        """Bytes skipped as damaged or cut short."""
+        return sum(d.end - d.start for d in self.damaged)
+
+    def skip(self, start: int, end: int, why: str) -> None:
+        self.damaged.append(Damage(start, end, why))
+        first = self.damaged[0].why
+        self.problem = first if len(self.damaged) == 1 else f"{first} (and {len(self.damaged) - 1} more damaged " \
+                                                              "regions, skipped)"
 
 
 def scan(path: str | os.PathLike[str], report: ScanReport | None = None, *, lenient: bool = False
@@ -108,28 +140,77 @@ def scan(path: str | os.PathLike[str], report: ScanReport | None = None, *, leni
         report.good_bytes = pos
         while True:
             head = fh.read(9)
+            why = ""
             if len(head) < 9:
-                _stop(path, report, pos, lenient, "the file ends before its footer" if not head else
-                      "the file ends inside a record header")
-                return
-            opcode, length = struct.unpack("<BQ", head)
-            if length > MAX_RECORD or pos + 9 + length > report.size:
-                _stop(path, report, pos, lenient, f"a record at byte {pos} runs past the end of the file")
-                return
-            body = fh.read(length)
-            try:
-                records = list(_decode(opcode, body, report))
-            except (struct.error, UnicodeDecodeError, zstandard.ZstdError, ValueError) as exc:
-                _stop(path, report, pos, lenient, f"the record at byte {pos} is damaged ({exc})")
-                return
+                why = "the file ends before its footer" if not head else "the file ends inside a record header"
+            else:
+                opcode, length = struct.unpack("<BQ", head)
+                if length > MAX_RECORD or pos + 9 + length > report.size:
+                    why = f"a record at byte {pos} runs past the end of the file"
+                elif lenient and (opcode > OP_DATA_END or (opcode == OP_MESSAGE and report.chunks)):
+                    why = f"the record at byte {pos} is damaged (opcode {opcode:#04x} is not expected there)"
+                else:
+                    body = fh.read(length)
+                    try:
+                        records = list(_decode(opcode, body, report))
+                    except (struct.error, UnicodeDecodeError, zstandard.ZstdError, ValueError) as exc:
+                        why = f"the record at byte {pos} is damaged ({exc})"
+            if why:
+                _stop(path, report, lenient, why)
+                found = _resync(fh, pos + 1, report.size)
+                report.skip(pos, report.size if found is None else found, why)
+                if found is None:
+                    return
+                pos = found
+                fh.seek(pos)
+                continue
             pos += 9 + length
             report.good_bytes = pos
             yield from records
             if opcode == OP_FOOTER:
                 report.complete = fh.read(8) == MAGIC
                 if not report.complete:
-                    _stop(path, report, pos, lenient, "the footer is not followed by the MCAP magic bytes")
+                    why = "the footer is not followed by the MCAP magic bytes"
+                    _stop(path, report, lenient, why)
+                    report.skip(pos, report.size, why)
                 return
+
+
+def _resync(fh: BinaryIO, start: int, size: int) -> int | None:
+    """The offset of the next valid chunk record at or after ``start`` (see the module docstring), or None."""
+    at = start
+    while at < size:
+        fh.seek(at)
+        window = fh.read(RESYNC_WINDOW + 64)
+        if not window:
+            return None
+        for i in np.flatnonzero(np.frombuffer(window, dtype=np.uint8)[:RESYNC_WINDOW] == OP_CHUNK).tolist():
+            if _chunk_at(fh, window, i, at + i, size):
+                return at + i
+        at += RESYNC_WINDOW
+    return None
+
+
+def _chunk_at(fh: BinaryIO, window: bytes, i: int, offset: int, size: int) -> bool:
+    """Whether a whole, valid chunk record starts at ``offset`` (``window[i]``)."""
+    if i + 41 > len(window):
+        return False
+    (length,) = struct.unpack_from("<Q", window, i + 1)
+    (clen,) = struct.unpack_from("<I", window, i + 37)  # the compression's name: "", "zstd" or "lz4"
+    if clen > 4 or length < 40 + clen or offset + 9 + length > size:
+        return False
+    fh.seek(offset + 9)
+    body = fh.read(length)
+    try:
+        compression, at = _str(body, 28)
+        (data,) = struct.unpack_from("<Q", body, at)
+        if compression not in _COMPRESSIONS or at + 8 + data != length:
+            return False
+        for _ in _chunk(body):
+            pass
+    except (struct.error, UnicodeDecodeError, zstandard.ZstdError, ValueError):
+        return False
+    return True
 
 
 def open_log_file(path: str) -> BinaryIO:
@@ -150,9 +231,10 @@ def open_log_file(path: str) -> BinaryIO:
     return fh
 
 
-def _stop(path: str, report: ScanReport, pos: int, lenient: bool, why: str) -> None:
-    report.problem = why
+def _stop(path: str, report: ScanReport, lenient: bool, why: str) -> None:
+    """Strict mode: raise, saying why. (Lenient mode goes on: the caller skips the damage.)"""
     if not lenient:
+        report.problem = why
         raise TruncatedLogError(f"{path} is truncated or damaged: {why} (read {report.good_bytes} of {report.size} "
                                 f"bytes; a run that is still recording, or was killed, leaves its log so); "
                                 f"`dynabrain log recover {path}` writes a valid file with every complete chunk")

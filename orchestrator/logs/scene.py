@@ -3,7 +3,8 @@
 Each entity is ``frame_locked`` to the frame named after its body, so the ``/tf`` poses move it.
 Geoms map to Foxglove primitives: box -> cube; sphere and ellipsoid -> sphere; cylinder -> cylinder;
 capsule -> a cylinder and two spheres; plane -> a thin slab (20 m square when infinite); mesh -> a
-triangle list. Bodies of objects that are not selected (frozen, `World.make`) are drawn translucent.
+triangle list. Bodies of objects that are not selected (frozen, `World.make`) are drawn translucent;
+so are the bodies of a branch the brain imagined, in that branch's frames (`SceneDrawing.imagined`).
 
 Geoms that belong to no body (a model file's ground, attached to the world) are drawn in an entity
 ``world`` in the frame ``world``. The core interface describes bodies only, so these, and mesh
@@ -28,9 +29,11 @@ from foxglove_schemas_protobuf.Point3_pb2 import Point3
 from foxglove_schemas_protobuf.Pose_pb2 import Pose
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from foxglove_schemas_protobuf.TriangleListPrimitive_pb2 import TriangleListPrimitive
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.duration_pb2 import Duration
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from .schema import varint
@@ -40,6 +43,8 @@ INFINITE_PLANE = 20.0
 """Side (m) of the slab that draws an infinite plane."""
 FROZEN_ALPHA = 0.35
 """Opacity factor of bodies that are not simulated."""
+IMAGINED_ALPHA = 0.4
+"""Opacity factor of bodies drawn in an imagined branch's frames (`SceneDrawing.imagined`)."""
 
 
 class SceneDrawing:
@@ -74,12 +79,31 @@ class SceneDrawing:
                                                           "frozen" if frozen else "simulated")
         return cached
 
+    def imagined(self, bodies: Sequence[str], frames: Sequence[str], t_ns: int, lifetime_ns: int) -> bytes:
+        """A ``SceneUpdate`` drawing ``bodies`` translucent, each in its frame of ``frames`` (an imagined
+        branch's), from ``t_ns`` for ``lifetime_ns``; empty when none of them has geometry."""
+        known = set(self.bodies)
+        stamp = Timestamp(seconds=t_ns // 1_000_000_000, nanos=t_ns % 1_000_000_000)
+        life = Duration(seconds=lifetime_ns // 1_000_000_000, nanos=lifetime_ns % 1_000_000_000)
+        entities = []
+        for body, frame in zip(bodies, frames, strict=True):
+            if body in known:
+                entity = self._entity_proto(frame, frame, self.core.body_info(body).geoms, "imagined", IMAGINED_ALPHA)
+                entity.timestamp.CopyFrom(stamp)
+                entity.lifetime.CopyFrom(life)
+                entities.append(entity)
+        return SceneUpdate(entities=entities).SerializeToString() if entities else b""
+
     def _make_entity(self, name: str, frame: str, geoms: Sequence[dict], state: str) -> bytes:
+        return self._entity_proto(name, frame, geoms, state, FROZEN_ALPHA if state == "frozen" else 1.0
+                                  ).SerializeToString()
+
+    def _entity_proto(self, name: str, frame: str, geoms: Sequence[dict], state: str, alpha: float) -> SceneEntity:
         entity = SceneEntity(frame_id=frame, id=name, frame_locked=True,
                              metadata=[KeyValuePair(key="state", value=state)])
         for geom in geoms:
-            self._add_geom(entity, geom, FROZEN_ALPHA if state == "frozen" else 1.0)
-        return entity.SerializeToString()
+            self._add_geom(entity, geom, alpha)
+        return entity
 
     def _add_geom(self, entity: SceneEntity, geom: dict, alpha: float) -> None:
         kind = geom["type"]

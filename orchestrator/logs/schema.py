@@ -15,6 +15,18 @@ Topics (every message's MCAP ``log_time`` is the simulated time, ``tick * step``
 - ``/scene``: the bodies' geometry as ``foxglove.SceneUpdate`` (see `logs.scene`).
 - ``/events``: JSON events (edits, parameter changes, rollbacks, errors, expectation results).
 - ``/discarded/bus``, ``/discarded/tf``, ``/discarded/scene``: ticks a rollback discarded.
+- ``/imagined/<name>/<branch>/...``: futures the brain imagined and asked to keep (`World.imagine`; a
+  batch's branches with ``BatchResult.imagine``, a plan with ``Plan.imagine``), each branch on topics of
+  its own, at its own future ticks (the message after tick ``start + k + 1`` at that tick's time), so
+  Foxglove plays the prediction beside what happened. ``.../bus``: the signals recorded, one message per
+  tick, a schema of their own (``dynabrain.imagined<n>.Bus``, made as ``/bus``'s is); the channel's
+  metadata gives the layout, ``imagined`` (the name), ``branch`` and ``start_tick``. ``.../tf``: when the
+  signals hold a body's ``<core>.<body>.pos`` and ``.quat``, its poses as ``foxglove.FrameTransforms`` in
+  a frame of its own, ``imagined/<name>/<branch>/<body>`` (parent ``world``); ``.../scene``: those bodies
+  drawn translucent in those frames, once, for the branch's duration. An ``imagined`` event on
+  ``/events`` says when the brain imagined it. An imagined branch is not a discarded future of the run:
+  rollbacks do not move it to ``/discarded/...``, `logs.read` leaves it out of the run, and ``replay
+  --verify`` does not compare it; it stays in the log as it was written.
 
 The hot codecs write messages of a fixed size per layout, so a batch of ticks encodes with a few
 numpy operations: fixed64 and double fields, packed repeated doubles, and in the pose messages
@@ -34,6 +46,7 @@ from google.protobuf import descriptor_pb2
 
 TOPIC_BUS, TOPIC_TF, TOPIC_SCENE, TOPIC_EVENTS = "/bus", "/tf", "/scene", "/events"
 DISCARDED = "/discarded"
+IMAGINED = "/imagined"
 FORMAT = "dynabrain-log/1"
 METADATA_NAME = "dynabrain"
 FIRST_SIGNAL_FIELD = 16
@@ -50,6 +63,12 @@ EVENT_SCHEMA = {
         "detail": {"type": "object"},
     },
 }
+
+
+def imagined_frame(name: str, branch: int, body: str) -> str:
+    """The frame of a body in an imagined branch (``/imagined/<name>/<branch>/tf``): a frame of its own,
+    so that Foxglove draws the prediction beside the body, not in its place."""
+    return f"imagined/{name}/{branch}/{body}"
 
 
 def varint(value: int) -> bytes:
@@ -167,7 +186,8 @@ def _tiles(block: Slot, inner: list[Slot]) -> bool:
 class BusCodec:
     """The ``/bus`` messages of one layout: encode bus rows in batches, decode them back, bit-exact."""
 
-    def __init__(self, slots: Sequence[Slot], numbers: FieldNumbers, size: int, key: int = 1):
+    def __init__(self, slots: Sequence[Slot], numbers: FieldNumbers, size: int, key: int = 1, kind: str = "layout"):
+        self.kind = kind  # "layout" (``/bus``) or "imagined" (an imagined branch's signals): names the schema
         self.slots = tuple(slots)
         self.by_name = {s.name: s for s in self.slots}
         self.size = size
@@ -229,12 +249,12 @@ class BusCodec:
     # -- description -----------------------------------------------------------------------------------
     @property
     def schema_name(self) -> str:
-        return f"dynabrain.layout{self.key}.Bus"
+        return f"dynabrain.{self.kind}{self.key}.Bus"
 
     def descriptor(self) -> bytes:
         """The schema as a serialized protobuf FileDescriptorSet."""
-        fd = descriptor_pb2.FileDescriptorProto(name=f"dynabrain/layout{self.key}.proto",
-                                                package=f"dynabrain.layout{self.key}", syntax="proto3")
+        fd = descriptor_pb2.FileDescriptorProto(name=f"dynabrain/{self.kind}{self.key}.proto",
+                                                package=f"dynabrain.{self.kind}{self.key}", syntax="proto3")
         msg = fd.message_type.add(name="Bus")
         fdp = descriptor_pb2.FieldDescriptorProto
         for name, num, _tag in _HEADER_FIELDS:
@@ -256,13 +276,14 @@ class BusCodec:
     def metadata(self) -> dict[str, str]:
         """Channel metadata from which `from_metadata` makes the same codec again."""
         return {"layout": json.dumps([[s.name, s.offset, list(s.shape), s.unit] for s in self.slots]),
-                "bus_size": str(self.size), "fields": json.dumps(self.numbers), "layout_key": str(self.key)}
+                "bus_size": str(self.size), "fields": json.dumps(self.numbers), "layout_key": str(self.key),
+                **({} if self.kind == "layout" else {"kind": self.kind})}
 
     @classmethod
     def from_metadata(cls, meta: Mapping[str, str]) -> BusCodec:
         slots = [Slot(n, int(o), tuple(int(x) for x in shape), u) for n, o, shape, u in json.loads(meta["layout"])]
         return cls(slots, FieldNumbers(json.loads(meta["fields"])), int(meta["bus_size"]),
-                   int(meta.get("layout_key", "1")))
+                   int(meta.get("layout_key", "1")), meta.get("kind", "layout"))
 
     @classmethod
     def from_view(cls, slots: Mapping[str, tuple[int, tuple[int, ...], str]], size: int, numbers: FieldNumbers,

@@ -2,8 +2,9 @@
 
 The logger (`logs.logger`) runs on the world's stepping thread: it copies bus rows into blocks and
 decides what is written when. A *sink* does the rest: it registers channels, encodes batches of rows
-into ``/bus``, ``/tf`` and ``/scene`` messages, writes events and metadata, and hands chunks to the
-`McapWriter`. Every sink call arrives in the order the logger made it.
+into ``/bus``, ``/tf`` and ``/scene`` messages and imagined branches into ``/imagined/...`` ones,
+writes events and metadata, and hands chunks to the `McapWriter`. Every sink call arrives in the order
+the logger made it.
 
 `ProcessSink` (the default) runs the sink in a child process (``python -m
 dynabrain.orchestrator.logs.sink``; it starts in about 0.15 s, and `attach` waits for it). Rows
@@ -31,7 +32,7 @@ import sys
 import tempfile
 import time
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Mapping, Sequence
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -47,6 +48,7 @@ from .messages import (
     Failed,
     Finish,
     Finished,
+    ImaginedRows,
     Layout,
     Metadata,
     Open,
@@ -57,7 +59,20 @@ from .messages import (
     Shared,
     Span,
 )
-from .schema import DISCARDED, EVENT_SCHEMA, TOPIC_BUS, TOPIC_EVENTS, TOPIC_SCENE, TOPIC_TF, BusCodec, PoseCodec
+from .schema import (
+    DISCARDED,
+    EVENT_SCHEMA,
+    IMAGINED,
+    TOPIC_BUS,
+    TOPIC_EVENTS,
+    TOPIC_SCENE,
+    TOPIC_TF,
+    BusCodec,
+    FieldNumbers,
+    PoseCodec,
+    Slot,
+    imagined_frame,
+)
 from .write import McapWriter
 
 START_TIMEOUT_S = 60.0
@@ -77,8 +92,10 @@ class LogSink:
         self.poses = PoseCodec(bodies) if bodies is not None else None
         self.descriptors = dict(descriptors)  # Foxglove schema name -> serialized FileDescriptorSet
         self.layouts: dict[int, tuple[BusCodec, np.ndarray, list[str]]] = {}
-        self.channels: dict[tuple[str, int], int] = {}
-        self.schema_ids: dict[int | str, int] = {}
+        self.channels: dict[tuple[str, Hashable], int] = {}
+        self.schema_ids: dict[int | str | tuple[str, int], int] = {}
+        self.imagined_codecs: dict[tuple, BusCodec] = {}  # by the signals' (name, shape, unit)
+        self.imagined_poses: dict[tuple[str, ...], PoseCodec] = {}
         self.events_channel()
 
     # -- calls ------------------------------------------------------------------------------------------
@@ -101,7 +118,20 @@ class LogSink:
 
     def rows(self, key: int, rows: np.ndarray, extra: np.ndarray | None, first: int, epoch: int,
              discarded: bool, scenes: Sequence[tuple[int, bytes]]) -> None:
-        """Encode rows of consecutive ticks (the first is ``first``; one layout, epoch and fate) into the chunk."""
+        """Encode rows of consecutive ticks (the first is ``first``; one layout, epoch and fate) into the
+        chunk, in parts that end where the chunk's span of simulated time does (`McapWriter.span_end`), so
+        a tick's bus and pose messages share a chunk."""
+        n, at = len(rows), 0
+        while at < n:
+            end = self.writer.span_end((first + at) * self.dt)
+            k = n - at if end is None else min(n - at, max(1, -(-(end - (first + at) * self.dt) // self.dt)))
+            part = slice(at, at + k)
+            self._rows(key, rows[part], None if extra is None else extra[part], first + at, epoch, discarded,
+                       [(r - at, scene) for r, scene in scenes if at <= r < at + k])
+            at += k
+
+    def _rows(self, key: int, rows: np.ndarray, extra: np.ndarray | None, first: int, epoch: int,
+              discarded: bool, scenes: Sequence[tuple[int, bytes]]) -> None:
         codec, cols, missing = self.layouts[key]
         prefix, w, dt = DISCARDED if discarded else "", self.writer, self.dt
         n = len(rows)
@@ -131,6 +161,51 @@ class LogSink:
             w.add_message(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), (first + row) * dt,
                           scene, epoch)
 
+    def imagined(self, name: str, branch: int, start_tick: int, epoch: int, slots: list[tuple[str, tuple, str]],
+                 values: np.ndarray, bodies: list[str], cols: np.ndarray, scene: bytes) -> None:
+        """A branch the brain imagined (`messages.ImaginedRows`): its signals to ``/imagined/<name>/<branch>/bus``
+        (one message per tick, a schema of their own), the poses of its bodies to ``.../tf`` in frames of
+        their own (`schema.imagined_frame`), their drawing to ``.../scene``; at the branch's own ticks."""
+        codec = self._imagined_codec(slots)
+        prefix, w, dt = f"{IMAGINED}/{name}/{branch}", self.writer, self.dt
+        n = len(values)
+        ticks = np.arange(start_tick + 1, start_tick + 1 + n, dtype=np.int64)
+        epochs = np.full(n, epoch, dtype=np.int64)
+        t_ns = ticks * dt
+        rows = np.ascontiguousarray(values, dtype=np.float64)
+        meta = {**codec.metadata(), "imagined": name, "branch": str(branch), "start_tick": str(start_tick)}
+
+        def bus(out: np.ndarray, part: slice) -> None:
+            codec.encode(rows[part], ticks[part], epochs[part], dt, out=out)
+
+        w.add_encoded(self.imagined_channel(prefix + TOPIC_BUS, codec, meta), t_ns, epochs, codec.length, bus)
+        if bodies:
+            frames = tuple(imagined_frame(name, branch, b) for b in bodies)
+            poses = self.imagined_poses.get(frames)
+            if poses is None:
+                poses = self.imagined_poses[frames] = PoseCodec(frames)
+            pose = rows[:, np.asarray(cols, dtype=np.intp)]
+
+            def fill(out: np.ndarray, part: slice) -> None:
+                poses.encode(pose[part, :, :3], pose[part, :, 3:], t_ns[part], out=out)
+
+            w.add_encoded(self.proto_channel(prefix + TOPIC_TF, "foxglove.FrameTransforms"), t_ns, epochs,
+                          poses.length, fill)
+        if scene:
+            w.add_message(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), int(t_ns[0]), scene, epoch)
+
+    def _imagined_codec(self, slots: list[tuple[str, tuple, str]]) -> BusCodec:
+        key = tuple((n, tuple(sh), u) for n, sh, u in slots)
+        codec = self.imagined_codecs.get(key)
+        if codec is None:
+            laid, at = [], 0
+            for n, sh, u in key:
+                laid.append(Slot(n, at, sh, u))
+                at += laid[-1].size
+            codec = BusCodec(laid, FieldNumbers(), at, len(self.imagined_codecs) + 1, kind="imagined")
+            self.imagined_codecs[key] = codec
+        return codec
+
     def apply(self, call: Call) -> None:
         """Make one of the logger's calls: the method of the message's name, with its fields."""
         method = _CALLS.get(type(call))
@@ -145,7 +220,7 @@ class LogSink:
         return {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written, "writer_cpu_s": w.thread_cpu_s}
 
     # -- channels ---------------------------------------------------------------------------------------
-    def _channel(self, topic: str, make: Callable[[], int], key: int = 0) -> int:
+    def _channel(self, topic: str, make: Callable[[], int], key: Hashable = 0) -> int:
         cid = self.channels.get((topic, key))
         if cid is None:
             cid = self.channels[(topic, key)] = make()
@@ -168,6 +243,16 @@ class LogSink:
 
         return self._channel(prefix + TOPIC_BUS, make, codec.key)
 
+    def imagined_channel(self, topic: str, codec: BusCodec, meta: dict[str, str]) -> int:
+        def make() -> int:
+            sid = self.schema_ids.get(("imagined", codec.key))
+            if sid is None:
+                sid = self.schema_ids[("imagined", codec.key)] = self.writer.add_schema(codec.schema_name, "protobuf",
+                                                                                       codec.descriptor())
+            return self.writer.add_channel(topic, "protobuf", sid, meta)
+
+        return self._channel(topic, make, ("imagined", codec.key, meta["start_tick"]))
+
     def proto_channel(self, topic: str, schema: str) -> int:
         def make() -> int:
             sid = self.schema_ids.get(schema)
@@ -178,7 +263,8 @@ class LogSink:
         return self._channel(topic, make)
 
 
-_CALLS: dict[type, Callable[..., None]] = {Metadata: LogSink.metadata, Layout: LogSink.layout, Event: LogSink.event}
+_CALLS: dict[type, Callable[..., None]] = {Metadata: LogSink.metadata, Layout: LogSink.layout, Event: LogSink.event,
+                                           ImaginedRows: LogSink.imagined}
 """Each writer call's method: its message's fields are the method's arguments, in order."""
 
 

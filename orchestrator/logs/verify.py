@@ -7,7 +7,9 @@ whose source is ``api``) are applied at their ticks, in their order; rollbacks a
 happened (``backtick`` to the recorded tick; a ``restore`` to the snapshot the replay took at that tick
 whose bus matches the recorded one; a failed tick must fail again). Every bus row the run produced,
 discarded ones included, is compared bit for bit with the row the replay produces at the same epoch
-and tick. The first difference is reported with its tick, signal and both values.
+and tick. The first difference is reported with its tick, signal and both values. What a brain
+imagined (``/imagined/...``) is not compared: it is no part of the run. A log with no ticks at all
+(nothing on ``/bus``) has nothing to verify and is refused (`LogError`; the CLI exits 2).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from ..scenario.model import load_scenario
 from .meta import RunInfo
 from .read import BusRow, LogIndex, iter_bus, read_index
 from .scan import LogError
-from .schema import BusCodec
+from .schema import TOPIC_BUS, BusCodec
 
 EDITS = ("module_added", "module_removed", "param", "set", "make", "make_joint", "remove_joint", "no_collision",
          "place", "connect", "disconnect")
@@ -85,6 +87,9 @@ def verify(path: str | os.PathLike[str]) -> VerifyResult:
         raise LogError(f"{path} has no scenario: it records a world built in code, which --verify cannot rebuild")
     if info.start_tick != 0:
         raise LogError(f"{path} starts at tick {info.start_tick}: --verify needs a recording attached at tick 0")
+    if not index.keys.get(TOPIC_BUS):
+        raise LogError(f"{path} holds no ticks (no {TOPIC_BUS} messages), so there is nothing to verify (a run "
+                       "killed before its first chunk was written recovers to such a log)")
     world = rebuild(info, path)
     try:
         return _Replay(world, index, path, info.scenario_dir or ".").run()

@@ -14,11 +14,16 @@ writer call made inside a job runs there, in order, and its chunks are compresse
 
 Crash safety. Bytes go to the file with ``os.write`` (no user-space buffer), one chunk at a time, so a
 process killed with SIGKILL leaves every chunk that was written. A chunk is finished when it holds
-``chunk_bytes`` of records or when its first record is ``flush_s`` seconds old (checked whenever a
-record is added), so a kill loses the chunk being filled and the finished ones still waiting for the
-thread (at most ``QUEUE_DEPTH`` jobs; in practice they are written within milliseconds). Schemas and
-channels are written into the chunk where they are registered (and repeated in the summary), so the
-complete chunks of a file can be decoded in order on their own.
+``chunk_bytes`` of records, when its messages would span ``chunk_ns`` of log time (simulated time, in
+a dynabrain log: 1 s by default, so a run faster than real time is chunked finely too) or when its
+first record is ``flush_s`` seconds old (checked whenever a record is added), so a kill loses the
+chunk being filled and the finished ones still waiting for the thread (at most ``QUEUE_DEPTH`` jobs;
+in practice they are written within milliseconds).
+
+Damage. Every chunk declares the schemas and channels of its own messages (a channel's records go into
+each chunk before its first message there, and into the summary), so any chunk decodes on its own: a
+damaged chunk loses its own messages only, and a reader that resynchronises on the next valid chunk
+(`logs.scan` in lenient mode, ``dynabrain log recover``) keeps everything after it.
 """
 
 from __future__ import annotations
@@ -43,6 +48,8 @@ OP_METADATA_INDEX, OP_SUMMARY_OFFSET, OP_DATA_END = 0x0D, 0x0E, 0x0F
 QUEUE_DEPTH = 2
 """Jobs (finished chunks, `McapWriter.call` jobs) waiting for the writing thread; a producer faster than
 the thread waits beyond this."""
+CHUNK_NS = 1_000_000_000
+"""Log time one chunk spans at most by default (ns): one second of simulated time."""
 MESSAGE_HEADER = struct.Struct("<BQHIQQ")
 """opcode, record length, channel id, sequence, log time, publish time (then the data)."""
 
@@ -77,6 +84,8 @@ class _Chunk:
 
     def reset(self) -> None:
         self.pos = 0
+        self.declared: set[int] = set()  # channels whose records (and schema's) this chunk holds
+        self.schemas: set[int] = set()
         self.index: dict[int, list[np.ndarray]] = {}
         self.t_min: int | None = None
         self.t_max = 0
@@ -105,17 +114,20 @@ class McapWriter:
     handed to the writer's own thread (`call`); the writer's thread compresses and writes chunks."""
 
     def __init__(self, path: str | os.PathLike[str], *, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
-                 level: int = -1, profile: str = "", library: str = "dynabrain"):
+                 chunk_ns: int | None = CHUNK_NS, level: int = -1, profile: str = "", library: str = "dynabrain"):
         self.path = os.fspath(path)
         try:
             self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         except OSError as exc:
             raise DynabrainError(f"cannot write the log {self.path}: {exc.strerror}") from None
-        self.chunk_bytes, self.flush_s = chunk_bytes, flush_s
+        if chunk_ns is not None and (isinstance(chunk_ns, bool) or not isinstance(chunk_ns, int) or chunk_ns < 1):
+            raise DynabrainError(f"McapWriter: chunk_ns must be a positive integer or None, got {chunk_ns!r}")
+        self.chunk_bytes, self.flush_s, self.chunk_ns = chunk_bytes, flush_s, chunk_ns
         self._zstd = zstandard.ZstdCompressor(level=level)
         self._pos = 0
         self._schemas: dict[int, bytes] = {}
         self._channels: dict[int, bytes] = {}
+        self._schema_of: dict[int, int] = {}  # channel id -> its schema id
         self._counts: dict[int, int] = {}
         self._chunk_indexes: list[bytes] = []
         self._metadata_indexes: list[bytes] = []
@@ -156,8 +168,7 @@ class McapWriter:
         sid = schema_id if schema_id is not None else len(self._schemas) + 1
         rec = record(OP_SCHEMA, struct.pack("<H", sid) + pack_str(name) + pack_str(encoding)
                      + struct.pack("<I", len(data)) + data)
-        self._schemas[sid] = rec
-        self._put(rec)
+        self._schemas[sid] = rec  # into each chunk that uses it (`_open`) and into the summary
         return sid
 
     def add_channel(self, topic: str, encoding: str, schema_id: int, metadata: Mapping[str, str] | None = None,
@@ -165,9 +176,9 @@ class McapWriter:
         cid = channel_id if channel_id is not None else len(self._channels) + 1
         rec = record(OP_CHANNEL, struct.pack("<HH", cid, schema_id) + pack_str(topic) + pack_str(encoding)
                      + pack_map(metadata or {}))
-        self._channels[cid] = rec
+        self._channels[cid] = rec  # into each chunk that uses it (`_open`) and into the summary
+        self._schema_of[cid] = schema_id
         self._counts.setdefault(cid, 0)
-        self._put(rec)
         return cid
 
     def add_metadata(self, name: str, values: Mapping[str, str]) -> None:
@@ -183,8 +194,10 @@ class McapWriter:
 
     # -- messages -------------------------------------------------------------------------------------
     def add_message(self, channel_id: int, log_time: int, data: bytes, sequence: int = 0) -> None:
-        offset = self._make_room(31 + len(data))
-        self._put(MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, log_time) + data)
+        self._within_span(log_time)
+        offset = self._open(channel_id, 31 + len(data))
+        self._chunk.put(MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, log_time)
+                        + data)
         self._indexed(channel_id, np.array([log_time], dtype=np.uint64), np.array([offset], dtype=np.uint64))
 
     def add_messages(self, channel_id: int, log_times: np.ndarray, sequences: np.ndarray, data: np.ndarray) -> None:
@@ -206,8 +219,10 @@ class McapWriter:
             dtype = self._dtypes[length] = _batch_dtype(length)
         done = 0
         while done < n:
-            start = self._make_room(size)
-            k = min(n - done, self._chunk.room() // size)
+            self._within_span(int(times[done]))
+            start = self._open(channel_id, size)
+            fits = max(1, (self.chunk_bytes - start) // size)  # a chunk holds at most chunk_bytes (or one message)
+            k = self._span_limit(times, done, min(n - done, self._chunk.room() // size, fits))
             region = self._chunk.buf[start:start + k * size]
             recs = region.view(dtype)
             recs["op"], recs["len"], recs["ch"] = OP_MESSAGE, 22 + length, channel_id
@@ -226,20 +241,72 @@ class McapWriter:
         if chunk.pos >= self.chunk_bytes or time.monotonic() - chunk.born >= self.flush_s:
             self.flush()
 
-    def _put(self, data: bytes) -> None:
-        self._make_room(len(data))
-        self._chunk.put(data)
-
-    def _make_room(self, size: int) -> int:
-        """Offset where ``size`` bytes go: in this chunk, or in a fresh one."""
-        if self._chunk.room() < size:
+    def _open(self, channel_id: int, size: int) -> int:
+        """Offset where a message of ``size`` bytes of ``channel_id`` goes: in this chunk or a fresh
+        one, after the records of its channel (and schema) when the chunk has none yet."""
+        decl = self._declaration(channel_id)
+        if self._chunk.room() < len(decl) + size:
             self.flush()
-            if self._chunk.room() < size:  # a record larger than a chunk buffer: a larger buffer
+            decl = self._declaration(channel_id)
+            if self._chunk.room() < len(decl) + size:  # a record larger than a chunk buffer: a larger buffer
                 old = self._chunk
-                self._chunk = _Chunk(old.pos + size + self.chunk_bytes)
+                self._chunk = _Chunk(old.pos + len(decl) + size + self.chunk_bytes)
                 self._chunk.put(old.buf[:old.pos].tobytes())
+                self._chunk.declared, self._chunk.schemas = old.declared, old.schemas
                 self._made += 1
+        if decl:
+            chunk = self._chunk
+            chunk.put(decl)
+            chunk.declared.add(channel_id)
+            chunk.schemas.add(self._schema_of.get(channel_id, 0))
         return self._chunk.pos
+
+    def _declaration(self, channel_id: int) -> bytes:
+        """The records this chunk needs before a message of ``channel_id``: none, or its channel's (after
+        its schema's, when the chunk lacks that too)."""
+        chunk = self._chunk
+        if channel_id in chunk.declared:
+            return b""
+        channel = self._channels.get(channel_id)
+        if channel is None:
+            raise DynabrainError(f"writing the log {self.path}: a message on channel {channel_id}, which was never "
+                                 "added")
+        sid = self._schema_of[channel_id]
+        schema = self._schemas.get(sid, b"") if sid not in chunk.schemas else b""
+        return schema + channel
+
+    def span_end(self, log_time: int) -> int | None:
+        """The log time from which messages no longer fit in the chunk being filled, for a batch whose
+        first message is at ``log_time`` (None: chunks are not limited by time). A caller writing
+        several channels of the same times splits its batches there, so that they share chunks."""
+        if self.chunk_ns is None:
+            return None
+        chunk = self._chunk
+        return (chunk.t_min if chunk.messages else log_time) + self.chunk_ns
+
+    def _within_span(self, log_time: int) -> None:
+        """Finish the chunk when a message at ``log_time`` would make it span ``chunk_ns`` or more."""
+        chunk = self._chunk
+        if self.chunk_ns is not None and chunk.messages and (max(chunk.t_max, log_time)
+                                                             - min(chunk.t_min, log_time) >= self.chunk_ns):
+            self.flush()
+
+    def _span_limit(self, times: np.ndarray, done: int, k: int) -> int:
+        """How many of the ``k`` messages from ``done`` on this chunk takes and still spans less than
+        ``chunk_ns`` of log time (at least one: `_within_span` made room for the first)."""
+        chunk, span = self._chunk, self.chunk_ns
+        if span is None or k <= 1:
+            return k
+        part = times[done:done + k].astype(np.int64)
+        lo, hi = int(part.min()), int(part.max())
+        if chunk.messages:
+            lo, hi = min(lo, chunk.t_min), max(hi, chunk.t_max)
+        if hi - lo < span:
+            return k
+        low, high = np.minimum.accumulate(part), np.maximum.accumulate(part)
+        if chunk.messages:
+            low, high = np.minimum(low, chunk.t_min), np.maximum(high, chunk.t_max)
+        return max(1, int(np.argmax(high - low >= span)))
 
     # -- chunks ---------------------------------------------------------------------------------------
     def flush(self) -> None:
