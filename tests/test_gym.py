@@ -206,3 +206,24 @@ def test_vector_env_copies_equal_the_single_env_on_the_swing(swing, backend):
     assert got[1].min() > 0  # the swing moves
     envs.close()
     ref.close()
+
+
+def test_vector_env_hands_the_reward_function_what_the_single_env_does():
+    seen = []
+
+    def reward(obs, action):
+        seen.append((type(obs["fuse.y"]), np.shape(obs["fuse.y"]), type(action["fuse.x"]), np.shape(action["fuse.x"])))
+        return 0.0
+
+    world = fuse_world()
+    task = dict(observe=["fuse.y"], act={"fuse.x": (0, 2)}, reward=reward)
+    single = WorldEnv(world.fork("fuse"), **task)
+    single.reset(seed=0)
+    single.step({"fuse.x": 0.5})
+    envs = WorldVectorEnv(world, 2, **task)
+    envs.reset(seed=0)
+    envs.step({"fuse.x": np.array([0.5, 0.5])})
+    assert seen == [(np.ndarray, (), np.ndarray, ())] * 3
+    envs.close()
+    single.world.close()
+    world.close()

@@ -355,7 +355,7 @@ class WorldVectorEnv(VectorEnv):
             for row, i in enumerate(live):
                 status, state = result.status[row], result.states[row]
                 if status.ok:
-                    obs = {name: result.signals[name][row, -1].copy() for name in self.task.signals}
+                    obs = {name: np.array(result.signals[name][row, -1]) for name in self.task.signals}
                 elif state is not None:  # the state its failure rolled back to
                     self._scratch.import_state(state)
                     obs = self.task.observe(self._scratch)
