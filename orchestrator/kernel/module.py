@@ -31,8 +31,11 @@ Lifecycle (the order the world calls a module in; `check_module` verifies it)::
 
 Fork: `World.fork` unbinds every module (``bind_ports(None)``), deep-copies them with one shared
 memo (so a sensor holding the core gets the copied core), binds the originals again and binds the
-copies to the new world. A module holding foreign resources (an engine handle, an FMU instance)
-defines ``__deepcopy__`` to copy them properly (its copy unbound), or declares ``can_fork=False``.
+copies to the new world. The copies share their originals' parameter dicts (a parameter change
+replaces a module's dict, never edits it, as history relies on too). A module holding foreign
+resources (an engine handle, an FMU instance) defines ``__deepcopy__`` to copy them properly (its
+copy unbound), or declares ``can_fork=False``; one holding what never changes (a compiled model, a
+table) may share it with its copy rather than copy it.
 
 Optional hooks are methods of this class with a documented default (`scenario_spec`,
 `steps_change_state`, ...; a physics core has more, see `PhysicsCore`): the kernel calls them
@@ -47,6 +50,8 @@ must copy what it keeps. Randomness comes from `ctx.rng` and its state belongs i
 
 from __future__ import annotations
 
+import functools
+import math
 import types
 from abc import ABCMeta
 from collections.abc import Callable, Mapping, Sequence
@@ -87,9 +92,11 @@ class Port:
     """The value the bus slot holds when the port appears (default 0): an input nothing drives yet
     reads it (an FMU input's start value, a servo's neutral target)."""
 
-    @property
+    @functools.cached_property
     def size(self) -> int:
-        return int(np.prod(self.shape, dtype=np.int64))
+        """The number of values (the product of ``shape``; 1 for a scalar), worked out once per port:
+        laying out a bus asks it of every port."""
+        return int(math.prod(self.shape))
 
 
 @dataclass(frozen=True)

@@ -19,9 +19,10 @@ made with ``compiled=False``, as a plain loop over the same entries (`Structure.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import heapq
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -29,7 +30,7 @@ import numpy as np
 
 from .compiled import CompiledTick, PlainTick
 from .errors import AlgebraicLoopError, WiringError
-from .module import Module, Port
+from .module import NO_PORTS, Module, Port, PortBinding
 from .suggest import did_you_mean
 from .units import same_unit
 
@@ -79,6 +80,29 @@ class Slot:
     direction: str  # "in" or "out"
 
 
+class ModuleSlots(NamedTuple):
+    """Where one module's ports lie on the bus, worked out once per layout (`BusLayout.modules`) so
+    that binding a module to a bus (`binding`) is only making views."""
+
+    inputs: tuple[tuple[str, int, int, tuple[int, ...] | None], ...]
+    """(port name, first value, end, shape or None when the port is one-dimensional) of each input."""
+    outputs: tuple[tuple[str, int, int, tuple[int, ...] | None], ...]
+    """The same for each output."""
+    inputs_flat: slice | None
+    """The run of the bus holding the module's own inputs (not the ``view_of`` ones), or None."""
+    outputs_flat: slice | None
+    """The same for its own outputs."""
+
+    def binding(self, buf: np.ndarray, read_only: np.ndarray,
+                param_changed: Callable[[Module], None] | None = None) -> PortBinding:
+        """The module's views on the bus ``buf``: inputs from ``read_only`` (a read-only view of it,
+        so they are read-only), outputs writable."""
+        inp = {n: read_only[a:b] if s is None else read_only[a:b].reshape(s) for n, a, b, s in self.inputs}
+        out = {n: buf[a:b] if s is None else buf[a:b].reshape(s) for n, a, b, s in self.outputs}
+        return PortBinding(inp, out, NO_PORTS if self.inputs_flat is None else read_only[self.inputs_flat],
+                           NO_PORTS if self.outputs_flat is None else buf[self.outputs_flat], param_changed)
+
+
 class BusLayout:
     """Offsets of every port of every module in one flat buffer."""
 
@@ -98,6 +122,35 @@ class BusLayout:
                     if port.view_of is not None:
                         self.slots[f"{rec.name}.{port.name}"] = self._view_slot(rec, port, direction)
         self.size = offset
+        self.modules: dict[str, ModuleSlots] = {rec.name: self._module_slots(rec) for rec in records}
+        """Module name -> where its ports lie (what binding it needs)."""
+        values, given = np.zeros(offset), np.zeros(offset, dtype=bool)
+        for slot in self.slots.values():  # blocks first, then the views into them (a view's start wins)
+            if slot.port.start is not None:
+                values[slot.start:slot.start + slot.size] = np.broadcast_to(
+                    np.asarray(slot.port.start, dtype=np.float64), slot.shape).reshape(-1)
+                given[slot.start:slot.start + slot.size] = True
+        self.start_index = np.flatnonzero(given)
+        """The bus positions whose ports have a start value (`Port.start`; the others start at 0) ..."""
+        self.start_values = values[self.start_index]
+        """... and those values."""
+
+    def new_bus(self) -> np.ndarray:
+        """A bus for this layout: every value at its port's start value, 0 where a port has none."""
+        buf = np.zeros(self.size)
+        if len(self.start_index):
+            buf[self.start_index] = self.start_values
+        return buf
+
+    def _module_slots(self, rec: ModuleRecord) -> ModuleSlots:
+        parts: list = []
+        for ports in (rec.inputs, rec.outputs):
+            slots = [(port, self.slots[f"{rec.name}.{port.name}"]) for port in ports]
+            parts.append(tuple((p.name, s.start, s.start + s.size, None if s.shape == (s.size,) else s.shape)
+                               for p, s in slots))
+            own = [s for p, s in slots if p.view_of is None]
+            parts.append(slice(own[0].start, own[-1].start + own[-1].size) if own else None)
+        return ModuleSlots(parts[0], parts[2], parts[1], parts[3])
 
     def _view_slot(self, rec: ModuleRecord, port: Port, direction: str) -> Slot:
         base_name, index = port.view_of  # type: ignore[misc]
@@ -218,6 +271,26 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
     delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
     saves = tuple(_save_kind(rec.module) for rec in records)
     return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather, saves)
+
+
+def rebind_structure(structure: Structure, modules: Mapping[str, Module]) -> Structure:
+    """``structure`` with each module replaced by ``modules[name]``, a copy of it with the same ports
+    (`World.fork`). Nothing of the layout, the checks, the schedule or the copies depends on the module
+    objects, only on their names, ports, periods and capabilities, which a copy keeps: the result shares
+    them with ``structure`` (the index arrays of the copies are never written) and builds again only
+    what holds the modules: the records, the plan's steps, the dispatch entries (their bound ``step``)
+    and what history saves of each."""
+    records = tuple(dataclasses.replace(rec, module=modules[rec.name]) for rec in structure.records)
+    by_name = {rec.name: rec for rec in records}
+    for old, new in zip(structure.records, records, strict=True):
+        if type(new.module) is not type(old.module):
+            raise WiringError(f"module {old.name!r}: its copy is a {type(new.module).__name__}, "
+                              f"not a {type(old.module).__name__}")
+    plan = tuple(Step(by_name[st.record.name], st.copies) for st in structure.plan)
+    dispatch = tuple(entry._replace(step=by_name[entry.name].module.step) for entry in structure.dispatch)
+    saves = tuple(_save_kind(rec.module) for rec in records)
+    return Structure(records, structure.connections, structure.layout, plan, structure.delayed, dispatch,
+                     structure.delayed_gather, saves)
 
 
 class _Unrestorable:

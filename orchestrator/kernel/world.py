@@ -32,18 +32,18 @@ from .compiled import compiled_by_default, state_saver
 from .core import PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
-from .module import NO_PORTS, Module, Port, PortBinding, SetupContext
+from .module import Module, SetupContext
 from .observers import Imagined, Observer, WorldEvent, WorldView
 from .structure import (
     SAVE_NONE,
     SAVE_PARAMS,
     UNRESTORABLE,
-    BusLayout,
     Connection,
     ModuleRecord,
     Slot,
     Structure,
     build_structure,
+    rebind_structure,
     split_signal,
 )
 from .suggest import did_you_mean
@@ -315,6 +315,9 @@ class World:
             bindings = {}  # modules are copied unbound (their copies are bound to the new world's bus)
             for rec in self._structure.records:
                 bindings[rec.name] = rec.module.bind_ports(None)
+                # shared, not copied: a parameter dict is replaced on a change, never changed in place
+                # (history's states share it the same way)
+                memo[id(rec.module._param_values)] = rec.module._param_values
             clones: dict[str, Module] = {}
             try:
                 for rec in self._structure.records:
@@ -328,16 +331,11 @@ class World:
                     rec.module.bind_ports(bindings[rec.name])
             other = World(name or f"{self.name}-fork", step=self.dt_ns, seed=self.seed,
                           history=self._history.depth, compiled=self._compiled)
-            records = [ModuleRecord(r.name, clones[r.name], r.period_ticks, r.phase, r.period_ns, r.inputs,
-                                    r.outputs) for r in self._structure.records]
-            other._install(build_structure(records, self._structure.connections), carry_values=False)
-            np.copyto(other._buf, self._buf)
+            other._install(rebind_structure(self._structure, clones), carry_values=False, bus=self._buf)
             other._tick = self._tick
             other._scheduled = {k: list(v) for k, v in self._scheduled.items()}
             other._core = clones.get(self._core.name) if self._core is not None else None
             other._known = {id(m): m for m in clones.values()}
-            for rec in other._structure.records:
-                rec.module.bind()
             return other
 
     # -- structure edits ------------------------------------------------------------------------------
@@ -417,15 +415,13 @@ class World:
             self._dirty = True
             self._emit("disconnect", dst=dst)
 
-    def _install(self, structure: Structure, *, carry_values: bool) -> None:
+    def _install(self, structure: Structure, *, carry_values: bool, bus: np.ndarray | None = None) -> None:
         """Make ``structure`` current: allocate the bus, carry values by name, rebind modules (each
-        gets a `PortBinding` of the new bus through `Module.bind_ports`, then `bind` is called)."""
+        gets a `PortBinding` of the new bus through `Module.bind_ports`, then `bind` is called).
+        ``bus``: the values the new bus starts with (a fork's: its world's bus, laid out the same);
+        without it, the ports' start values (new ports begin there) and what is carried."""
         old_layout, old_buf = self._structure.layout, self._buf
-        buf = np.zeros(structure.layout.size)
-        for slot in structure.layout.slots.values():  # start values first: new ports begin there
-            if slot.port.start is not None:
-                buf[slot.start:slot.start + slot.size] = np.broadcast_to(
-                    np.asarray(slot.port.start, dtype=np.float64), slot.shape).reshape(-1)
+        buf = structure.layout.new_bus() if bus is None else bus.copy()
         if carry_values:
             for name, slot in structure.layout.slots.items():
                 old = old_layout.slots.get(name)
@@ -434,16 +430,7 @@ class World:
         self._buf, self._mv, self._ro = buf, memoryview(buf), _read_only(buf)
         self._structure = structure
         for rec in structure.records:
-            inp, out = {}, {}
-            for ports, target, writable in ((rec.inputs, inp, False), (rec.outputs, out, True)):
-                for port in ports:
-                    slot = structure.layout.slots[f"{rec.name}.{port.name}"]
-                    view = buf[slot.start:slot.start + slot.size].reshape(slot.shape)
-                    view.setflags(write=writable)
-                    target[port.name] = view
-            rec.module.bind_ports(PortBinding(inp, out, _flat(buf, structure.layout, rec, rec.inputs, False),
-                                              _flat(buf, structure.layout, rec, rec.outputs, True),
-                                              self._param_changed))
+            rec.module.bind_ports(structure.layout.modules[rec.name].binding(buf, self._ro, self._param_changed))
             rec.module.bind()
 
     # -- scene edits (delegated to the core; part of its state) ----------------------------------------
@@ -960,16 +947,6 @@ def module_spec(module: Module, period_ns: int, connections: Sequence[Connection
     if connections:
         spec["connect"] = [[c.src, c.dst, {"delay": True}] if c.delay else [c.src, c.dst] for c in connections]
     return spec
-
-
-def _flat(buf: np.ndarray, layout: BusLayout, rec: ModuleRecord, ports: Sequence[Port], writable: bool) -> np.ndarray:
-    """One flat view of a module's own ports of one direction (the bus lays them out in a row)."""
-    own = [layout.slots[f"{rec.name}.{p.name}"] for p in ports if p.view_of is None]
-    if not own:
-        return NO_PORTS
-    view = buf[own[0].start:own[-1].start + own[-1].size]
-    view.setflags(write=writable)
-    return view
 
 
 def _same_params(current: dict[str, Any], values: dict[str, Any]) -> dict[str, Any]:
