@@ -251,3 +251,19 @@ def test_processes_need_a_world_that_can_be_rebuilt(humanoid):
         assert Batch(bare).backend == "serial"  # auto falls back
     finally:
         bare.close()
+
+
+def test_a_serial_batch_brings_modules_added_to_the_world(tmp_path):
+    """The serial backend's private copy makes, like the world, a module the start state has and the
+    copy lacks; a parameter's name is not a signal to record."""
+    world = load_world(SCENARIOS / "two_cubes.yaml")
+    try:
+        with Batch(world, backend="serial") as batch:
+            batch.run(2, branches=1)  # the private copy exists before the module is added
+            world.add_module(Counter("count"))
+            result = batch.run(5, branches=2, record=["count.count"])
+            assert result.ok and result.signals["count.count"][:, -1].tolist() == [5.0, 5.0]
+            with pytest.raises(DynabrainError, match="no signal"):
+                batch.run(5, branches=2, record=["core.friction"])
+    finally:
+        world.close()

@@ -67,11 +67,12 @@ def test_any_bytes_decode_to_a_frame_or_a_protocol_error(data):
         frame = frames.unpack(data)
     except p.ProtocolError:
         return
-    assert len(data) == frames.HEADER_SIZE + 8 * frame.values.size
+    assert len(data) == frames.HEADER_SIZE + 8 * frame.values.size + len(frame.meta)
 
 
 # -- commands -----------------------------------------------------------------------------------------------------
 EXAMPLES = {
+    "batch": {"ticks": 10, "branches": 2, "params": {"servo.kp": [40, 60]}, "record": ["core.joint_q"]},
     "tick": {"n": 10, "view": 1}, "backtick": {"n": 3}, "start": {"realtime": True, "until": 2.5}, "stop": {},
     "make": {"objects": ["cube", "b_*"]}, "make_joint": {"a": "fore", "b": "cube"}, "remove_joint": {"name": "j"},
     "no_collision": {"objects": ["a", "b"]}, "place": {"body": "cube", "pos": [0, 0, 1]},

@@ -45,7 +45,7 @@ from ..kernel.observers import Imagined
 from ..kernel.world import World
 from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 
-BACKENDS = ("auto", "serial", "processes", "ray")
+BACKENDS = ("auto", "serial", "processes", "ray", "threads")
 
 
 @dataclass
@@ -96,7 +96,6 @@ class BatchResult:
                 portable.decode(state).tick - done if state is not None else world.tick_count)
             kept.append(world.imagine(name, start, {n: v[b, :done] for n, v in self.signals.items()}, branch=int(b)))
         return kept
-
 
 
 class Batch:
@@ -155,6 +154,10 @@ class Batch:
                 from .pool import ProcessPool
 
                 self._pool = ProcessPool(self.build, self.workers or os.cpu_count() or 1)
+            elif self.backend == "threads":  # a core-only MuJoCo world, through mujoco.rollout (brain/rollout.py)
+                from .rollout import RolloutBackend
+
+                self._pool = RolloutBackend(self.world, self.workers)
             else:
                 from .ray_pool import RayPool
 
@@ -236,7 +239,7 @@ class Batch:
     def _shapes(self, record: Sequence[str]) -> dict[str, tuple[int, ...]]:
         if isinstance(record, str):
             raise DynabrainError("batch: record is a list of signal names")
-        return {name: np.shape(self.world.get(name)) for name in record}
+        return {name: self.world.signal_shape(name) for name in record}
 
     # -- closing ----------------------------------------------------------------------------------------------
     def close(self) -> None:

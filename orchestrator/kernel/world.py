@@ -334,6 +334,7 @@ class World:
             other._install(rebind_structure(self._structure, clones), carry_values=False, bus=self._buf)
             other._tick = self._tick
             other._scheduled = {k: list(v) for k, v in self._scheduled.items()}
+            other.module_factory, other.rebuild = self.module_factory, self.rebuild
             other._core = clones.get(self._core.name) if self._core is not None else None
             other._known = {id(m): m for m in clones.values()}
             return other
@@ -619,7 +620,6 @@ class World:
             for obs in self._observers:
                 obs.on_imagined(self._view, imagined)
             return imagined
-
 
     # -- the loop in a thread -------------------------------------------------------------------------
     def start(self, realtime: bool | float = False, *, until: float | None = None) -> None:
@@ -914,6 +914,12 @@ class World:
                                   f"shape {slot.shape} need {(ticks, *slot.shape)}")
             drives.append((arr.reshape(ticks, -1), full))
         return drives
+
+    def signal_shape(self, name: str) -> tuple[int, ...]:
+        """The shape of signal ``name`` (``module.port``, or a core port without ``core.``); an error
+        naming the closest signal when there is none (a parameter's name is not a signal)."""
+        with self._lock:
+            return self._signal_slot(name, "signal_shape()").shape
 
     def _input_slot(self, full: str) -> Slot:
         self.settable(full)
