@@ -61,11 +61,14 @@ class BranchOutcome:
     status: BranchStatus
 
 
-def run_branch(world: World, task: BranchTask) -> BranchOutcome:
+def run_branch(world: World, task: BranchTask, *, at_start: bool = False) -> BranchOutcome:
     """Run ``task`` on ``world`` (which it leaves in the branch's final state). A module that raises, a
-    physics that diverges or a start state the world refuses is a failed branch, not an exception."""
+    physics that diverges or a start state the world refuses is a failed branch, not an exception.
+    ``at_start``: the world is in ``task.start`` already (it ended the previous branch there), so the
+    import is skipped."""
     try:
-        world.import_state(task.start)
+        if not at_start:
+            world.import_state(task.start)
         for name, value in task.params.items():
             world.set(name, value)
         signals = world.run(task.ticks, inputs=task.inputs, record=task.record)
@@ -96,9 +99,17 @@ class BranchRunner:
 
     def __init__(self, build: Any):
         self.world: World = build()
+        self.last: bytes | None = None
+        """The state the world is in after the last branch (as exported), when it was kept."""
 
     def run(self, task: BranchTask) -> BranchOutcome:
-        return run_branch(self.world, task)
+        """Run a branch; one that starts where the last one ended (a vector env's copy, a plan going
+        on) continues on the world as it is, without importing the state again."""
+        at_start = self.last is not None and (task.start is self.last or task.start == self.last)
+        self.last = None
+        outcome = run_branch(self.world, task, at_start=at_start)
+        self.last = outcome.state
+        return outcome
 
     def close(self) -> None:
         self.world.close()

@@ -29,6 +29,7 @@ class _Worker:
     def __init__(self, proc: Popen, conn: Connection):
         self.proc, self.conn = proc, conn
         self.task: BranchTask | None = None
+        self.last: bytes | None = None  # the state its world ended the last branch in
 
     def cause(self) -> str:
         try:
@@ -50,6 +51,17 @@ class _Worker:
         except TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
+
+
+def _take(queue: deque[BranchTask], last: bytes | None) -> BranchTask:
+    """The next task for a worker: one that starts where the worker's world is (it skips an import),
+    else the first."""
+    if last is not None:
+        for i, task in enumerate(queue):
+            if task.start == last:
+                del queue[i]
+                return task
+    return queue.popleft()
 
 
 class ProcessPool:
@@ -106,7 +118,7 @@ class ProcessPool:
         while queue or busy:
             while queue and idle:
                 worker = idle.pop()
-                worker.task = queue.popleft()
+                worker.task = _take(queue, worker.last)
                 with contextlib.suppress(OSError):  # died while idle: read back as a death below
                     worker.conn.send(worker.task)
                 busy[worker.conn] = worker
@@ -121,7 +133,7 @@ class ProcessPool:
                         False, f"the worker process running branch {task.index} died ({worker.cause()})"))
                     worker = self._replace(worker)
                 outcomes[task.index] = outcome
-                worker.task = None
+                worker.task, worker.last = None, outcome.state
                 idle.append(worker)
         return [outcomes[t.index] for t in tasks]
 

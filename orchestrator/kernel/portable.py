@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import copyreg
 import dataclasses
+import functools
 import hashlib
 import io
 import json
@@ -154,8 +155,9 @@ class PortableState:
     params: tuple[dict[str, Any], ...]
 
 
+@functools.cache
 def version() -> str:
-    """This dynabrain's version (a state from another version is refused)."""
+    """This dynabrain's version (a state from another version is refused); read once."""
     try:
         return metadata.version("dynabrain")
     except metadata.PackageNotFoundError:
@@ -164,7 +166,8 @@ def version() -> str:
 
 def signature(module: Any, ports: Any) -> str:
     """A short hash of a module's class and its ``ports``: two modules with the same signature lay out
-    the same state (a core's ports name every body, joint and sensor of its scene)."""
+    the same state (a core's ports name every body, joint and sensor of its scene). The World keeps
+    each module's (`World._signature_of`): a core has hundreds of ports."""
     cls = type(module)
     ports = [(p.name, tuple(p.shape), p.unit) for p in ports]
     text = json.dumps([f"{cls.__module__}:{cls.__qualname__}", ports], separators=(",", ":"))

@@ -97,6 +97,7 @@ class World:
         self._snapshots = itertools.count(1)
         self._id = id(self)
         self._export_heads: dict[tuple[int, int], tuple] = {}  # export_state's headers (`_export_header`)
+        self._signatures: dict[int, tuple[ModuleRecord, str]] = {}  # `_signature_of`
         self.error: BaseException | None = None
         self.module_factory: Callable[[dict[str, Any]], Module] | None = None
         """Makes a module from its spec (the scenario's module syntax) when `import_state` brings one this
@@ -751,7 +752,7 @@ class World:
         hit = self._export_heads.get(key)
         if hit is None or hit[0] is not state.structure or hit[1] is not state.params:
             modules = [{"name": r.name, "class": f"{type(r.module).__module__}:{type(r.module).__qualname__}",
-                        "signature": portable.signature(r.module, (*r.inputs, *r.outputs)),
+                        "signature": self._signature_of(r),
                         "period_ns": r.period_ns, "phase": r.phase,
                         "spec": module_spec(r.module, r.period_ns)} for r in state.structure.records]
             conns = [[c.src, c.dst, c.delay] for c in state.structure.connections]
@@ -803,17 +804,32 @@ class World:
             if rec is None:
                 continue
             cls = f"{type(rec.module).__module__}:{type(rec.module).__qualname__}"
-            if cls != entry.cls or portable.signature(rec.module, (*rec.inputs, *rec.outputs)) != entry.signature:
+            if cls != entry.cls or self._signature_of(rec) != entry.signature:
                 raise portable.StateFormatError(
                     f"import_state: module {entry.name!r} differs: the state's (world {ps.world!r}) is {entry.cls}, "
                     f"this world's is {cls}" + (" with other ports (another scene or configuration?)"
                                                  if cls == entry.cls else ""))
         return ps
 
+    def _signature_of(self, rec: ModuleRecord) -> str:
+        """`portable.signature` of a module as present here, kept per record (records live as long as
+        their structure)."""
+        hit = self._signatures.get(id(rec))
+        if hit is None or hit[0] is not rec:
+            if len(self._signatures) > 4096:
+                self._signatures.clear()
+            hit = self._signatures[id(rec)] = (rec, portable.signature(rec.module, (*rec.inputs, *rec.outputs)))
+        return hit[1]
+
     def _structure_for(self, ps: portable.PortableState) -> Structure:
         """This world's structure when it matches the state's, else one made for it (new modules made
         and set up; a failure closes them and leaves the world as it was)."""
         current = self._structure
+        if (len(ps.modules) == len(current.records) and ps.connections == tuple(
+                (c.src, c.dst, c.delay) for c in current.connections) and all(
+                e.name == r.name and e.period_ns == r.period_ns and e.phase == r.phase
+                for e, r in zip(ps.modules, current.records, strict=True))):
+            return current  # the usual case (`_decode_state` has checked the modules)
         by_name: dict[str, ModuleRecord | Module] = {m.name: m for m in self._known.values()}  # removed ones too
         by_name.update({rec.name: rec for rec in current.records})
         made: list[Module] = []
@@ -821,26 +837,20 @@ class World:
         try:
             for entry in ps.modules:
                 have = by_name.get(entry.name)
-                if isinstance(have, ModuleRecord):
+                if isinstance(have, ModuleRecord):  # present: checked by `_decode_state`
                     module, inputs, outputs = have.module, have.inputs, have.outputs
                 else:
                     module = have if have is not None else self._make_for_import(entry, made)
                     inputs, outputs = tuple(module.inputs()), tuple(module.outputs())
-                cls = f"{type(module).__module__}:{type(module).__qualname__}"
-                if cls != entry.cls or portable.signature(module, (*inputs, *outputs)) != entry.signature:
-                    raise portable.StateFormatError(
-                        f"import_state: module {entry.name!r} differs: the state's is {entry.cls}, this world's is "
-                        f"{cls}" + (" with other ports (another scene or configuration?)" if cls == entry.cls else ""))
+                    cls = f"{type(module).__module__}:{type(module).__qualname__}"
+                    if cls != entry.cls or portable.signature(module, (*inputs, *outputs)) != entry.signature:
+                        raise portable.StateFormatError(
+                            f"import_state: module {entry.name!r} differs: the state's is {entry.cls}, this world's "
+                            f"is {cls}" + (" with other ports (another scene or configuration?)"
+                                           if cls == entry.cls else ""))
                 records.append(ModuleRecord(entry.name, module, entry.period_ns // self.dt_ns, entry.phase,
                                             entry.period_ns, inputs, outputs))
-            conns = tuple(Connection(s, d, x) for s, d, x in ps.connections)
-            same = (len(records) == len(current.records) and conns == tuple(
-                Connection(c.src, c.dst, c.delay) for c in current.connections) and all(
-                a.module is b.module and a.period_ns == b.period_ns and a.phase == b.phase
-                for a, b in zip(records, current.records, strict=True)))
-            if same:
-                return current
-            structure = build_structure(records, conns)
+            structure = build_structure(records, [Connection(s, d, x) for s, d, x in ps.connections])
         except BaseException:
             for module in made:
                 _close_quietly(module)
