@@ -147,9 +147,16 @@ def recover(log: Annotated[Path, typer.Argument(help="a log left by a killed run
         path, report = do_recover(log, output)
     if report.complete:
         out.print(f"{log} was complete; nothing was lost", markup=False)
+    elif len(report.damaged) > 1 or (report.damaged and report.damaged[0].end < os.path.getsize(log)):
+        out.print(f"{log} is damaged in {len(report.damaged)} place(s) ({report.problem}): skipped "
+                  f"{report.lost_bytes} bytes, kept every intact chunk after them", markup=False)
     else:
         out.print(f"{log} stops early ({report.problem}): lost its last {report.lost_bytes} bytes", markup=False)
-    ticks = f", run ticks {report.ticks[0]}..{report.ticks[1]}" if report.ticks else ""
+    ticks = ""
+    if report.ticks:
+        span = report.ticks[1] - report.ticks[0] + 1
+        gaps = f", {span - report.run_ticks} missing in gaps" if report.run_ticks and report.run_ticks < span else ""
+        ticks = f", {report.run_ticks or span} run ticks from {report.ticks[0]} to {report.ticks[1]}{gaps}"
     out.print(f"wrote {path}: {report.chunks} chunks, {report.messages} messages{ticks}"
               + (f"; {report.moved} discarded messages moved to /discarded/..." if report.moved else ""), markup=False)
 
