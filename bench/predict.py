@@ -8,7 +8,10 @@ ZMP: 8 modules besides the core). Printed, each figure measured in this run:
    the pelvis position and the ZMP: ticks per second on ``serial``, ``processes`` (every core) and
    ``ray`` (a local Ray, when it is installed), and each as a ratio to the baseline;
    targets: processes >= 1.7x the baseline on 2 cores; ray >= 0.8x processes;
-3. a fork of the humanoid world: time and the memory it adds (target: 1 ms).
+3. a fork of the humanoid world: time and the memory it adds (target: 1 ms);
+4. the core-only humanoid (its model, no module) on ``threads`` against `mujoco.rollout` called directly
+   on the same models (each branch's friction set by the core), data (one per thread) and controls:
+   steps per second of each, all branches together, and their ratio (target: threads >= 0.9x rollout).
 
 Run: ``.venv/bin/python bench/predict.py [--branches 32] [--ticks 500] [--no-ray]``
 """
@@ -16,20 +19,23 @@ Run: ``.venv/bin/python bench/predict.py [--branches 32] [--ticks 500] [--no-ray
 from __future__ import annotations
 
 import argparse
+import copy
 import os
 import resource
+import tempfile
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
-from timing import best_of
+from timing import best_of, best_of_each
 
 from dynabrain.orchestrator import Batch, load_world
 
 ROOT = Path(__file__).resolve().parents[1]
 HUMANOID = ROOT / "scenarios" / "humanoid_stand.yaml"
 RECORD = ("core.pelvis.pos", "zmp.zmp")
+MODEL = ROOT / "scenarios" / "models" / "humanoid.xml"
 
 
 def alone(world, ticks: int) -> float:
@@ -76,6 +82,50 @@ def fork_cost(world, repeats: int = 20) -> tuple[float, float]:
     return seconds * 1e3, added / 2**20
 
 
+def threads_against_rollout(branches: int, ticks: int, threads: int) -> tuple[float, float, bool]:
+    """(steps per second of a ``threads`` batch of the core-only humanoid, of `mujoco.rollout` called directly
+    on the same models, data and controls, whether both give the same pelvis trajectories). Each branch:
+    its own torques and friction; the batch records the pelvis position and the joints, keeps final states."""
+    import mujoco
+    from mujoco import rollout
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "humanoid_core.yaml"
+        path.write_text(f"name: humanoid_core\nworld: {{step: 2ms, core: mujoco}}\nscene: {{model: {MODEL}}}\n")
+        world = load_world(path)
+    world.tick(50)
+    ctrl = np.random.default_rng(0).normal(0.0, 0.3, (branches, ticks, *np.shape(world.get("core.ctrl"))))
+    frictions = np.linspace(0.5, 1.2, branches)
+    twin = world.fork()  # the models: the core's own, each friction set by the core (as the backend makes them)
+    models = []
+    for friction in frictions:
+        twin.set("core.friction", float(friction))
+        models.append(copy.copy(twin.core.mj.model))
+    twin.close()
+    order = [p.name for p in world.core.inputs() if p.view_of is not None and p.view_of[0] == "ctrl"]
+    assert order == [f"{models[0].actuator(a).name}.ctrl" for a in range(models[0].nu)]  # ctrl is in MuJoCo's order
+    full, data = mujoco.mjtState.mjSTATE_FULLPHYSICS, world.core.mj.data
+    state0 = np.empty((1, mujoco.mj_stateSize(models[0], full)))
+    mujoco.mj_getState(models[0], data, state0[0], full)
+    warm = data.qacc_warmstart.copy()[None]
+    datas = [mujoco.MjData(models[0]) for _ in range(threads)]
+
+    def direct() -> tuple[np.ndarray, np.ndarray]:
+        return rollout.rollout(models, datas, state0, ctrl, initial_warmstart=warm, persistent_pool=True)
+
+    request = dict(branches=branches, inputs={"core.ctrl": ctrl}, params={"core.friction": frictions},
+                   record=("core.pelvis.pos", "core.joint_q"))
+    results = []
+    with Batch(world, backend="threads", workers=threads) as batch:
+        assert batch.run(2, branches=1).ok  # its threads and scratch world
+        direct()  # rollout's pool
+        t_threads, t_direct = best_of_each([lambda: results.append(batch.run(ticks, **request)), direct], repeats=5)
+    states, _ = direct()
+    same = all(r.ok for r in results) and np.array_equal(states[:, :, 1:4], results[-1].signals["core.pelvis.pos"])
+    world.close()
+    return branches * ticks / t_threads, branches * ticks / t_direct, same
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--branches", type=int, default=32)
@@ -110,8 +160,16 @@ def main() -> None:
         print(f"   target ray >= 0.8x processes: {'met' if ratio >= 0.8 else 'MISSED'} ({ratio:.2f})")
     ms, mib = fork_cost(world)
     print(f"   fork: {ms:.2f} ms, {mib:.2f} MiB added   target <= 1 ms: {'met' if ms <= 1 else 'MISSED'}")
-    print(f"   peak memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
     world.close()
+    threads, direct, same = threads_against_rollout(opts.branches, opts.ticks, cores)
+    print(f"core-only humanoid (the model, no module), {opts.branches} branches x {opts.ticks} ticks, {cores} threads; "
+          f"load {os.getloadavg()[0]:.2f}")
+    print(f"   batch on threads:                           {threads:9.0f} steps/s")
+    print(f"   mujoco.rollout called directly (same models, data, controls): {direct:9.0f} steps/s")
+    ratio = threads / direct
+    print(f"   target threads >= 0.9x mujoco.rollout: {'met' if ratio >= 0.9 else 'MISSED'} ({ratio:.2f}x); "
+          f"same trajectories: {'yes' if same else 'NO'}")
+    print(f"   peak memory of this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 
 
 if __name__ == "__main__":
