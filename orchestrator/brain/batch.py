@@ -19,6 +19,8 @@ Backends, one API:
 - ``serial``: in this process, on one private fork of the world (for debugging; any world);
 - ``processes``: worker processes, each building a copy of the world with ``world.rebuild`` (set by
   `load_world`) or ``build=``; states cross as exported bytes; every core is used;
+- ``threads``: a world whose only module is a MuJoCo core, through ``mujoco.rollout`` on threads
+  (no Python per step; `rollout.RolloutBackend` says what it maps and refuses);
 - ``ray``: the same workers as Ray actors, on a local Ray or a cluster (``address=``), for a brain
   that outgrows one machine (``pip install 'dynabrain[ray]'``);
 - ``auto``: ``processes`` when the machine has more than one core and the world can be rebuilt,

@@ -269,7 +269,7 @@ class RolloutBackend:
         return core
 
     def _check_events(self, world: World, first: int, ticks: int) -> None:
-        scheduled = sorted(t for t in getattr(world, "_scheduled", {}) if first <= t < first + ticks)
+        scheduled = [t for t in world.scheduled_ticks() if first <= t < first + ticks]
         if scheduled:
             raise refuse(f"the world has scenario events at ticks {', '.join(map(str, scheduled[:5]))}, within the "
                          f"branches' ticks {first}..{first + ticks - 1}; it steps MuJoCo alone (use 'serial' or "

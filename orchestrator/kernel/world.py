@@ -565,6 +565,11 @@ class World:
             self._scheduled.setdefault(tick, []).append((label, action))
         return tick
 
+    def scheduled_ticks(self) -> list[int]:
+        """The ticks at which scheduled actions (a scenario's events) fire, in order."""
+        with self._lock:
+            return sorted(self._scheduled)
+
     # -- observers ------------------------------------------------------------------------------------
     def observe(self, observer: Observer) -> None:
         with self._lock:
