@@ -15,7 +15,7 @@ FLOOR = BodySpec("floor", "plane", ())
 
 def bind(core: PhysicsCore) -> tuple[dict, dict]:
     """Lay the ports out like the kernel (each direction's own ports in a row of one flat buffer,
-    the ``view_of`` ports as views into them), then bind the core."""
+    the ``view_of`` ports as views into them, each at its start value), then bind the core."""
     bound: list = [{}, {}]
     flats = []
     for ports, dst in zip((core.inputs(), core.outputs()), bound, strict=True):
@@ -24,6 +24,8 @@ def bind(core: PhysicsCore) -> tuple[dict, dict]:
         at = 0
         for p in own:
             dst[p.name] = flat[at:at + p.size].reshape(p.shape)
+            if p.start is not None:
+                dst[p.name][...] = p.start
             at += p.size
         for p in ports:
             if p.view_of is not None:

@@ -25,6 +25,13 @@ and `exudyn.outputs` for the Exudyn system, `exudyn.contact` and `exudyn.calibra
   a wider zone calms impacts, a narrower one lets less creep on slopes);
 - a joint's range is a limit stop as stiff as the contacts; a weld (`make_joint`) merges the two
   bodies into one rigid body, exactly; the joint ports, parameter names and queries are MuJoCo's;
+- the free bodies' inputs (`PhysicsCore`): a ``B.wrench`` becomes loads on the body's free carrier
+  (its force on top of gravity's mass-proportional load, its torque, and the force's moment about the
+  carrier's centre of mass, as a torque load), set again before a step only when they change; a
+  ``B.velocity`` that holds a value sets the carrier's node velocities at the start of the step
+  (`exudyn.inputs`). Velocity Verlet starts each step from the accelerations of the last, so a
+  changed force or velocity is felt half an engine step late (a 1 N push on 1 kg for 0.1 s gives
+  0.09975 m/s at the default 0.5 ms engine step; MuJoCo, 0.1);
 - structural edits (`make`, `make_joint`, `no_collision`) build a new Exudyn system (welds merge
   rigid bodies exactly); systems are cached by their edits, so a rollback across an edit costs a
   dictionary look-up. The state is ``(edits, array)``: see `get_state`.
@@ -43,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from dynabrain.orchestrator.kernel.core import NO_EDITS, BodyInfo, EditedCore, Edits, SceneSpec
+from dynabrain.orchestrator.kernel.core import NO_EDITS, BodyInfo, EditedCore, Edits, SceneSpec, body_inputs
 from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Param, Port, SetupContext
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
@@ -129,6 +136,7 @@ class ExudynCore(EditedCore):
                 outs += [Port(f"{j}.q", (), q, view_of=("joint_q", i)),
                          Port(f"{j}.qd", (), f"{q}/s", view_of=("joint_qd", i))]
                 ins.append(Port(f"{j}.force", (), f, view_of=("joint_force", i)))
+        ins += body_inputs(top.free_bodies())
         for b in top.bodies:
             if top.role[b] == "cable":
                 outs.append(Port(f"{b}.points", (top.spec[b].cable.segments + 1, 3), "m", doc="node positions"))
@@ -145,6 +153,9 @@ class ExudynCore(EditedCore):
         self._out: dict[str, np.ndarray] = {}
         self._points: list[tuple[str, np.ndarray]] = []
         self._force = np.zeros(nj)
+        nf = len(self._top.free_bodies())
+        self._wrench, self._vel = np.zeros(6 * nf), np.full(6 * nf, np.nan)
+        self._no_wrench, self._vel_unset = self._wrench.tobytes(), self._vel.tobytes()  # bytes of inputs at rest
 
     def bind(self) -> None:
         self._unbind()
@@ -153,8 +164,9 @@ class ExudynCore(EditedCore):
                 self._out[key] = self.out[key]
         self._points = [(b, self.out[f"{b}.points"]) for b in self._top.bodies
                         if self._top.role[b] == "cable" and self.out.get(f"{b}.points") is not None]
-        if self.inp.get("joint_force") is not None:
-            self._force = np.asarray(self.inp["joint_force"]).reshape(-1)
+        for attr, key in (("_force", "joint_force"), ("_wrench", "body_wrench"), ("_vel", "body_velocity")):
+            if self.inp.get(key) is not None:
+                setattr(self, attr, np.asarray(self.inp[key]).reshape(-1))
 
     # -- lifecycle --------------------------------------------------------------------------------------------
     def setup(self, ctx: SetupContext) -> None:
@@ -170,6 +182,10 @@ class ExudynCore(EditedCore):
         s = self._s
         if s.trees:
             s.set_forces(self._force)
+        if s.pushing or self._wrench.tobytes() != self._no_wrench:
+            s.push(self._wrench)
+        if self._vel.tobytes() != self._vel_unset:  # a velocity input holds a value
+            s.set_velocities(self._vel)
         try:
             s.step(t_ns * 1e-9, (t_ns + dt_ns) * 1e-9, self._nsub)
         except Exception as exc:  # Exudyn raises on a failed step (e.g. a contact search gone wild)

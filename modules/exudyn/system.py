@@ -29,6 +29,7 @@ import exudyn as exu
 import numpy as np
 from exudyn.itemInterface import (
     LoadMassProportional,
+    LoadTorqueVector,
     MarkerBodyMass,
     MarkerBodyPosition,
     MarkerBodyRigid,
@@ -49,6 +50,7 @@ from dynabrain.orchestrator.kernel.core import Edits
 from . import cable as xc
 from . import contact as xk
 from . import geometry as geo
+from .inputs import Inputs
 from .outputs import Frame, Outputs
 from .plan import Carrier, Plan
 from .topology import Topology
@@ -108,7 +110,7 @@ class Options:
     link_contacts: bool = True
 
 
-class System(Outputs):
+class System(Outputs, Inputs):
     """An Exudyn system for one structure (a `Plan`), ready to step."""
 
     def __init__(self, top: Topology, plan: Plan, edits: Edits, start: Start, options: Options, settings: dict):
@@ -122,6 +124,8 @@ class System(Outputs):
         self.items: list[xk.BodyItems] = []
         self.materials: list[float | None] = [None]
         self.free: list[tuple[int, int, int]] = []  # (node, rigid body, gravity load)
+        self.free_mass: list[float] = []  # the mass of each free carrier
+        self.torque_loads: list[int] = []  # each free carrier's torque load (`Inputs.push`)
         self.trees: list[dict] = []
         self.cables: list[xc.CableParts] = []
         self.limits: list[tuple[int, float]] = []  # (connector, inertia about the joint)
@@ -136,9 +140,12 @@ class System(Outputs):
             self.wn = float(settings["wn"])
             self.contacts = xk.build_sets(mbs, self.items, excluded, self._box(), len(self.materials), self.wn)
             mbs.Assemble()
+            self.pushed = np.zeros((len(self.free), 6))  # the free carriers' wrenches (`Inputs.push`)
+            self.pushing = False  # whether any is not zero
             self.apply(**settings)  # before the solver starts: it computes the first accelerations
             self._solver(options.integrator)
         self._index_outputs()
+        self._index_inputs()
 
     # -- building -------------------------------------------------------------------------------------------
     def _carrier(self, c: Carrier, start: Start) -> None:
@@ -182,6 +189,9 @@ class System(Outputs):
         load = mbs.AddLoad(LoadMassProportional(markerNumber=mbs.AddMarker(MarkerBodyMass(bodyNumber=body)),
                                                    loadVector=[0.0, 0.0, 0.0]))
         self.free.append((node, body, load))
+        self.free_mass.append(mass)
+        self.torque_loads.append(mbs.AddLoad(LoadTorqueVector(  # world frame (`Inputs.push`)
+            markerNumber=mbs.AddMarker(MarkerBodyRigid(bodyNumber=body)), loadVector=[0.0, 0.0, 0.0])))
         shift = (-com, geo.IDENTITY[1])
         for member, x in c.members.items():
             x_nb = geo.compose(shift, x)
@@ -345,8 +355,9 @@ class System(Outputs):
               step: float) -> None:
         """Apply run-time parameters (idempotent; the contact frequency must be the one it was built with)."""
         mbs, g = self.mbs, [float(x) for x in gravity]
-        for _node, _body, load in self.free:
-            mbs.SetLoadParameter(load, "loadVector", g)
+        self.gravity = g
+        for i, (_node, _body, load) in enumerate(self.free):
+            mbs.SetLoadParameter(load, "loadVector", self.gravity_load(i))
         for tree in self.trees:
             mbs.SetObjectParameter(tree["kt"], "gravity", g)
         for cable in self.cables:

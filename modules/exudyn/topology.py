@@ -75,6 +75,10 @@ class Topology:
     def free(self) -> frozenset[str]:
         return frozenset(b for b, r in self.role.items() if r == "free")
 
+    def free_bodies(self) -> tuple[str, ...]:
+        """The free bodies in body order: the rows of the ``body_wrench`` and ``body_velocity`` inputs."""
+        return tuple(b for b in self.bodies if self.role[b] == "free")
+
     def qunit(self, joint: str) -> tuple[str, str]:
         kind = self.spec[self.joint_body[joint]].joint.kind
         return ("rad", "N*m") if kind == "hinge" else ("m", "N")

@@ -6,8 +6,28 @@ run-time parameter changes are part of the core's state, so history and rollback
 
 Ports every core exposes (names are ``<object>.<quantity>``):
 
-- per free body ``B``: outputs ``B.pos`` (3, m), ``B.quat`` (4, w-x-y-z), ``B.linvel`` (3, m/s),
-  ``B.angvel`` (3, rad/s, world frame);
+- per body ``B``: outputs ``B.pos`` (3, m), ``B.quat`` (4, w-x-y-z), ``B.linvel`` (3, m/s),
+  ``B.angvel`` (3, rad/s, world frame); positions and velocities are those of the body's frame origin
+  (the centre of mass of a primitive);
+- per free body ``B`` (a top-level body with a free joint), inputs a brain acts on it with
+  (`body_inputs`; views into the blocks ``body_wrench`` and ``body_velocity``, (n, 6), one row per
+  free body in body order):
+
+  - ``B.wrench`` (6: force in N, then torque in N*m; world frame, at the body's centre of mass):
+    applied for the whole tick, every engine substep, as long as it holds the value; starts at 0;
+  - ``B.velocity`` (6: linear velocity of the body's origin in m/s, then angular velocity in rad/s;
+    world frame): at the start of every tick, before the engine steps, each component that is not NaN
+    becomes the body's velocity; NaN components are left as the motion has them. It starts all NaN
+    (nothing is set), and a value stays set, applied again at the start of each tick, until NaN is
+    written back: a pusher that moves a block at a speed writes the speed once. Forces act during the
+    tick as usual (a body held at a speed is still slowed by what it hits within the tick).
+
+  Both are inputs like any other: connected from a module, set by `World.set` or a scenario's ``set``
+  event, saved with the bus (history, rollback, fork, logs). A body frozen by `make` ignores them. A
+  body welded to other free bodies (`make_joint`) moves them with it: a velocity set moves them all
+  as one rigid body, a wrench pushes the whole (Exudyn: the merged rigid body; MuJoCo: through the
+  weld's constraint). Welded to something static or to a jointed link, it is held there (Exudyn
+  ignores its inputs; in MuJoCo the weld's constraint fights them);
 - per hinge / slide joint ``J``: outputs ``J.q`` (rad or m), ``J.qd``; input ``J.force``
   (N*m or N, a generalised force added at the joint);
 - engine-specific extras (MuJoCo actuators ``A.ctrl``, sensors ``sensor.S``) where the engine has them.
@@ -31,7 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .errors import DynabrainError
-from .module import Capabilities, Module
+from .module import Capabilities, Module, Port
 from .portable import state_type
 from .suggest import did_you_mean
 
@@ -55,6 +75,42 @@ COLORS: dict[str, tuple[float, float, float, float]] = {
     "black": (0.08, 0.08, 0.08, 1.0),
     "brown": (0.5, 0.3, 0.15, 1.0),
 }
+
+
+WRENCH_UNIT = "N, N*m"
+"""Unit of a body's wrench input: three forces, then three torques."""
+VELOCITY_UNIT = "m/s, rad/s"
+"""Unit of a body's velocity input: three linear velocities, then three angular ones."""
+
+
+def body_inputs(free: Sequence[str]) -> tuple[Port, ...]:
+    """The input ports a core gives its free bodies ``free`` (in body order): the blocks
+    ``body_wrench`` and ``body_velocity`` (n, 6) and each body's row of them, ``B.wrench`` and
+    ``B.velocity`` (see the module docstring); none when there is no free body. A core compares the
+    velocity block's bytes with its start value's before each step: a tick where no brain writes it
+    costs a bytes comparison."""
+    if not free:
+        return ()
+    n, nan = len(free), float("nan")
+    return (Port("body_wrench", (n, 6), WRENCH_UNIT, doc="force (N) and torque (N*m) on each free body, world "
+                 "frame, at its centre of mass, held for the tick"),
+            *(Port(f"{b}.wrench", (6,), WRENCH_UNIT, view_of=("body_wrench", i)) for i, b in enumerate(free)),
+            Port("body_velocity", (n, 6), VELOCITY_UNIT, start=nan, doc="linear (m/s) and angular (rad/s) "
+                 "velocity each free body takes at the start of each tick, world frame; NaN: left alone"),
+            *(Port(f"{b}.velocity", (6,), VELOCITY_UNIT, view_of=("body_velocity", i), start=nan)
+              for i, b in enumerate(free)))
+
+
+def requested_velocity(request: np.ndarray, lin: np.ndarray, ang: np.ndarray
+                       ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The linear and angular velocity (world frame) a body moving at ``lin``, ``ang`` takes from a
+    velocity input ``request`` (6 values, NaN: left alone): each is None when its three requested
+    components are all NaN (leave it untouched, bit for bit)."""
+    out: list[np.ndarray | None] = []
+    for want, now in ((request[:3], lin), (request[3:], ang)):
+        keep = np.isnan(want)
+        out.append(None if keep.all() else np.where(keep, now, want))
+    return out[0], out[1]
 
 
 @dataclass(frozen=True)
