@@ -34,20 +34,32 @@ def test_save_restore_is_bit_exact(engine):
 
 
 def edited_run(core, inp, out):
-    """Steps interleaved with every kind of structural edit and a parameter change."""
+    """Steps interleaved with every kind of structural edit, a parameter change and the free bodies'
+    inputs (a wrench, a velocity set, part NaN, then released)."""
     parts = [trajectory(core, out, 20)]
     core.make(["a", "arm"])
+    inp["a.wrench"][:] = (0.0, 0.2, 0.6, 0.0, 0.001, 0.0)
     parts.append(trajectory(core, out, 20))
     core.set_param("friction", 0.4)
     core.make_joint("a", "c")
+    inp["a.velocity"][:] = (0.3, np.nan, np.nan, np.nan, np.nan, 1.0)
     parts.append(trajectory(core, out, 20))
     core.no_collision(["a", "b"])
     core.set_param("restitution", 0.5)
     inp["joint_force"][:] = -0.2
+    inp["a.velocity"][:] = np.nan
+    inp["b.velocity"][:] = (np.nan, -0.1, np.nan, np.nan, np.nan, np.nan)
     parts.append(trajectory(core, out, 20))
     core.make(["a", "b", "c", "arm", "floor"])
     parts.append(trajectory(core, out, 20))
     return np.concatenate(parts)
+
+
+def rest_inputs(inp) -> None:
+    """Every input back at its start value (as the bus holds it when a run starts)."""
+    inp["joint_force"][:] = 0.0
+    inp["body_wrench"][:] = 0.0
+    inp["body_velocity"][:] = np.nan
 
 
 @ENGINES
@@ -63,7 +75,7 @@ def test_save_restore_is_bit_exact_across_edits_and_params(engine):
     # back before every edit: the original structure and parameters, then replay
     core._restore_params(dict(params))
     core.set_state(saved)
-    inp["joint_force"][:] = 0.0
+    rest_inputs(inp)
     assert core.selection == tuple(core.objects())
     assert np.array_equal(trajectory(core, out, 40), plain)
     core.set_state(saved)

@@ -10,8 +10,9 @@ import pytest
 from corekit import DT, FLOOR, G, box, run, scene_for_state, trajectory
 
 from dynabrain.modules.mujoco.core import MujocoCore
-from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec
+from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec, SceneSpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
+from dynabrain.orchestrator.kernel.world import World
 
 
 def make_core(*bodies: BodySpec, model: str | None = None, scenario_dir: str | None = None, **params):
@@ -212,3 +213,56 @@ def test_hinge_range_is_in_radians():
     inp["arm.force"][...] = 0.5
     run(core, 500)
     assert 0.45 < float(out["arm.q"]) < 0.52  # held at the 0.5 rad stop (a soft limit)
+
+
+# -- forks share the compiled model -----------------------------------------------------------------------
+def physics_world() -> World:
+    return World("share", step="2ms", history=50, core=MujocoCore("core", SceneSpec(bodies=scene_for_state())))
+
+
+def steps(world: World, n: int) -> list[bytes]:
+    out = []
+    for _ in range(n):
+        world.tick()
+        out.append(world.snapshot().bus.tobytes())
+    return out
+
+
+def test_a_fork_and_its_world_share_the_model_and_stay_apart_after_a_parameter_change_in_either():
+    world, reference = physics_world(), physics_world()  # the reference never forks: what each must do
+    world.tick(30)
+    reference.tick(30)
+    start = reference.snapshot()
+    fork = world.fork()
+    assert fork.core.mj.model is world.core.mj.model and fork.core.mj.data is not world.core.mj.data
+    fork.set("core.friction", 0.2)  # the fork writes: it copies the model first
+    assert fork.core.mj.model is not world.core.mj.model
+    assert world.core.mj.model.geom_friction[0, 0] == 1.0 and fork.core.mj.model.geom_friction[0, 0] == 0.2
+    other = world.fork()  # shares the world's model again
+    assert other.core.mj.model is world.core.mj.model
+    world.set("core.gravity", [0.0, 0.0, -3.0])  # now the world writes: the other fork keeps g
+    assert other.core.mj.model is not world.core.mj.model
+    assert other.core.mj.model.opt.gravity[2] == -9.81 and world.core.mj.model.opt.gravity[2] == -3.0
+    assert steps(other, 40) == steps(reference, 40)  # g = -9.81 and friction 1.0, as the other fork
+    reference.restore(start)
+    reference.set("core.gravity", [0.0, 0.0, -3.0])
+    assert steps(world, 40) == steps(reference, 40)
+    reference.restore(start)
+    reference.set("core.friction", 0.2)
+    assert steps(fork, 40) == steps(reference, 40)
+    for w in (fork, other, world, reference):
+        w.close()
+
+
+def test_a_closed_forks_data_serves_the_next_fork():
+    world = physics_world()
+    world.tick(30)
+    first = world.fork()
+    data = first.core.mj.data
+    first.close()
+    assert first.core.mj is None  # a closed core keeps nothing
+    again = world.fork()
+    assert again.core.mj.data is data  # filled with the world's state (mj_copyData), not made anew
+    assert steps(again, 30) == steps(world, 30)
+    again.close()
+    world.close()

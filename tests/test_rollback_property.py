@@ -1,5 +1,6 @@
 """Property tests of rollback with each real physics core (MuJoCo and Exudyn): random sequences of
-tick, backtick, set, add, remove, make, make_joint and no_collision. Replaying from a rollback is
+tick, backtick, set (parameters, and the free bodies' wrench and velocity inputs), add, remove, make,
+make_joint and no_collision. Replaying from a rollback is
 bit-identical, and so is a fresh world running the same sequence (Exudyn: velocity Verlet with one
 thread; see `dynabrain.modules.exudyn.system`). Every test runs with the generated tick and with the
 plain loop (`tick_runner` in conftest.py)."""
@@ -23,6 +24,9 @@ from dynabrain.orchestrator.kernel.world import World
 pytestmark = pytest.mark.usefixtures("tick_runner")  # every test both ways: generated tick, plain loop
 
 OBJECTS = ["a", "b", "c", "arm"]
+NAN = float("nan")
+PUSHES = [(0.0, 0.0, 0.0), (0.5, 0.0, 1.2), (-0.3, 0.2, 0.0)]  # forces on a (N)
+SPEEDS = [None, (0.2, NAN, NAN), (NAN, NAN, 0.0), (0.0, -0.1, 0.3)]  # velocities set on c (m/s); None: released
 CORES = {"mujoco": MujocoCore, "exudyn": ExudynCore}
 
 
@@ -58,6 +62,8 @@ op = st.one_of(
     st.tuples(st.just("make"), st.sets(st.sampled_from(OBJECTS), min_size=1)),
     st.tuples(st.just("joint"), st.sampled_from([("a", "b"), ("c", "arm")])),
     st.tuples(st.just("nocollide"), st.just(0)),
+    st.tuples(st.just("push"), st.integers(0, len(PUSHES) - 1)),
+    st.tuples(st.just("speed"), st.integers(0, len(SPEEDS) - 1)),
 )
 ops = st.lists(op, min_size=3, max_size=16)
 
@@ -85,6 +91,11 @@ def apply(world: World, action: tuple) -> None:
         _refusable(world.make_joint, *arg)
     elif kind == "nocollide":
         world.no_collision(["a", "b"])
+    elif kind == "push":
+        world.set("core.a.wrench", [*PUSHES[arg], 0.0, 0.002, 0.0])
+    elif kind == "speed":
+        speed = SPEEDS[arg]
+        world.set("core.c.velocity", [NAN] * 6 if speed is None else [*speed, NAN, NAN, 0.5])
 
 
 def _refusable(call, *args) -> None:

@@ -17,9 +17,19 @@ Choices (see also `mujoco.scene`):
   in MuJoCo's order, and each sensor's port (``sensor.<name>``) is a view into it. The outputs are
   declared in the order of the MuJoCo arrays they come from, so a step writes them all with five
   memory copies (poses, joints, and one run of sensordata for the sensors and the velocities);
+- the free bodies' inputs (`PhysicsCore`): ``B.wrench`` goes into ``xfrc_applied`` (world frame, at
+  the body's centre of mass, MuJoCo's own convention) before every step, as joint forces go into
+  ``qfrc_applied``; a ``B.velocity`` that holds a value is written into the body's free joint
+  (``qvel``: its linear velocity is the body origin's in the world frame, its angular one in the body
+  frame) at the start of the step, bodies welded to it (`make_joint`) moved with it as one rigid
+  body, and the velocity-dependent half of the step is computed again (``mj_step1``, as after a
+  parameter change). Neither is state (`STATE`): both come from the inputs, on the bus;
 - structural edits (`make`, `make_joint`, `no_collision`) recompile the model (`mujoco.scene`);
   each compiled model (a `CompiledScene`) is cached by its edits, so a rollback across an edit costs
   a dictionary look-up. The state is ``(edits, integration state array, sensor values)`` (see `STATE`);
+- a fork (`World.fork`, a deep copy) copies only the MuJoCo data of the current structure, into data a
+  closed fork left when there is some; the compiled model is shared until either core changes a
+  run-time parameter, which copies it first (`ModelShare`, `CompiledScene.own_model`);
 - modules that need MuJoCo's own model and data (native sensors, contacts) read them through
   `MujocoCore.mj` (a `MujocoView`), through `mujoco.access.MujocoLink`.
 """
@@ -29,6 +39,8 @@ from __future__ import annotations
 import copy
 import logging
 import operator
+import threading
+import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -37,7 +49,15 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.kernel.core import NO_EDITS, BodyInfo, EditedCore, Edits, SceneSpec
+from dynabrain.orchestrator.kernel.core import (
+    NO_EDITS,
+    BodyInfo,
+    EditedCore,
+    Edits,
+    SceneSpec,
+    body_inputs,
+    requested_velocity,
+)
 from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Param, Port, SetupContext
 
@@ -57,11 +77,14 @@ if mujoco.get_mju_user_warning() is None:
 
 _S = mujoco.mjtState
 STATE = int(_S.mjSTATE_INTEGRATION) & ~int(_S.mjSTATE_QFRC_APPLIED) & ~int(_S.mjSTATE_XFRC_APPLIED)
-"""MuJoCo's integration state without the applied forces: the core rewrites ``qfrc_applied`` from its
-inputs before every step and never uses ``xfrc_applied``, so they carry no state (and for free bodies
-they were 40 % of it)."""
+"""MuJoCo's integration state without the applied forces: the core rewrites ``qfrc_applied`` (joint
+forces) and ``xfrc_applied`` (the free bodies' wrenches) from its inputs before every step, so they
+carry no state (and for free bodies they were 40 % of it)."""
 CACHE_SIZE = 16
 DEFAULT_PERIOD_S = 0.002
+SPARE_DATA = 4
+"""MuJoCo data kept per shared model from closed forks, for the next forks (`ModelShare`)."""
+_SHARING = threading.Lock()  # guards every `ModelShare` (forks step, and close, in threads)
 
 
 def _plain(array: np.ndarray) -> bool:
@@ -88,7 +111,8 @@ class MujocoView:
     to another compiled model, where ids differ; each compiled model has its own view, so a module
     keeps the view it resolved its ids against and compares it with ``core.mj is not seen`` (one
     identity check) to know when to resolve them again. Read only: what a module writes into
-    ``model`` or ``data`` is not part of any state and a rollback does not undo it.
+    ``model`` or ``data`` is not part of any state and a rollback does not undo it (and the model is
+    shared with the core's forks: a write would reach them too).
     """
 
     model: mujoco.MjModel
@@ -97,13 +121,31 @@ class MujocoView:
     """The structure this model was compiled for."""
 
 
+class ModelShare:
+    """A compiled model shared by compiled scenes: a core's and its forks' (`CompiledScene.clone`),
+    until one writes it (`CompiledScene.own_model`); and the MuJoCo data of the closed ones, kept for
+    the next forks (`CompiledScene.release`): a new MjData costs about 0.35 ms in MuJoCo's Python
+    bindings whatever the model, filling a kept one with `mujoco.mj_copyData` a few microseconds."""
+
+    def __init__(self) -> None:
+        self.scenes: weakref.WeakSet[CompiledScene] = weakref.WeakSet()
+        """The scenes whose ``model`` is the shared one."""
+        self.spare: list[mujoco.MjData] = []
+        """Data of this model's shape no scene uses any more (at most `SPARE_DATA`)."""
+
+
 class CompiledScene:
     """One compiled structure of the core: the MuJoCo model and data for one `Edits` value, and
     where each value of the core's fixed port layout (`mujoco.scene.Layout`) comes from in them.
 
     Index attributes are flat positions into C-ordered arrays: ``*_rows`` into the core's port
     blocks (``body_pos`` (n, 3) as 3n values ...), ``*_src`` and ``*_adr`` into MuJoCo's arrays; each
-    is a slice where the positions are contiguous (a cheaper copy), else an index array.
+    is a slice where the positions are contiguous (a cheaper copy), else an index array. They depend
+    on the model only, and a `clone` shares them.
+
+    The model is written only by the core's run-time parameters (`MujocoCore._apply_params`); a clone
+    (a fork's) shares it until one of them writes it, and that one copies it first (`own_model`).
+    A closed core's scenes give their data back for the next clone (`release`) and keep none.
     """
 
     def __init__(self, layout: ms.Layout, edits: Edits, model: mujoco.MjModel, movers: tuple,
@@ -112,19 +154,12 @@ class CompiledScene:
         self.model = model
         self.movers = movers  # the bodies that move (not fused, not static), in model order
         self.friction = friction  # geom name -> its own sliding friction (the scene's per-body values)
-        self.data = d = data if data is not None else mujoco.MjData(model)
-        self.view = MujocoView(model, d, edits)  # what `MujocoCore.mj` hands out while this is current
-        self.xpos_flat, self.xquat_flat = d.xpos.reshape(-1), d.xquat.reshape(-1)  # body poses, flat
-        self.qpos, self.qvel, self.sensordata = d.qpos, d.qvel, d.sensordata
-        self.ctrl, self.qfrc_applied = d.ctrl, d.qfrc_applied  # where the inputs go
+        self.share: ModelShare | None = None
+        """Who else has this ``model`` (a fork's scene, or the one this was forked from), or None while it
+        is this scene's own (`clone`, `own_model`)."""
+        self.applied: tuple | None = None
+        """(parameter dict, period) the model's run-time parameters were last set from."""
         self.state_size = mujoco.mj_stateSize(model, STATE)  # values in a saved integration state
-        w = mujoco.mjtWarning
-        # MuJoCo's counters of bad numbers (NaN, inf, |x| > 1e10): (what, counter), the worst first
-        self.warnings = tuple((what, d.warning[int(k)]) for what, k in (
-            ("acceleration", w.mjWARN_BADQACC), ("velocity", w.mjWARN_BADQVEL), ("position", w.mjWARN_BADQPOS)))
-        self.bad_qacc, self.bad_qvel, self.bad_qpos = (x[1] for x in self.warnings)
-        self.warning_counts = [x[1].number for x in self.warnings]  # each counter as of the last check
-        self.warnings_seen = sum(self.warning_counts)  # their sum (a step compares the sum)
         self.body_id = {model.body(i).name: i for i in range(1, model.nbody)}  # body name -> MuJoCo id
         # joint name -> where its values lie in qpos and qvel
         self.joint_slices = {model.joint(j).name: ms.joint_slice(model, j) for j in range(model.njnt)}
@@ -134,10 +169,69 @@ class CompiledScene:
         self._map_bodies(layout, edits)
         self._map_joints(layout, edits)
         self._map_actuators_sensors(layout)
+        self._map_free(layout)
+        self._attach(data if data is not None else mujoco.MjData(model))
 
-    def clone(self, layout: ms.Layout) -> CompiledScene:
-        return CompiledScene(layout, self.edits, copy.deepcopy(self.model), self.movers, self.friction,
-                             copy.deepcopy(self.data))
+    def _attach(self, d: mujoco.MjData) -> None:
+        """Take ``d`` as this scene's data, with the views into it the core reads and writes."""
+        self.data = d
+        self.view = MujocoView(self.model, d, self.edits)  # what `MujocoCore.mj` hands out while this is current
+        self.xpos_flat, self.xquat_flat = d.xpos.reshape(-1), d.xquat.reshape(-1)  # body poses, flat
+        self.qpos, self.qvel, self.sensordata = d.qpos, d.qvel, d.sensordata
+        # where the inputs go: joint forces, motor controls, the free bodies' wrenches (flat)
+        self.ctrl, self.qfrc_applied, self.xfrc_flat = d.ctrl, d.qfrc_applied, d.xfrc_applied.reshape(-1)
+        w = mujoco.mjtWarning
+        # MuJoCo's counters of bad numbers (NaN, inf, |x| > 1e10): (what, counter), the worst first
+        self.warnings = tuple((what, d.warning[int(k)]) for what, k in (
+            ("acceleration", w.mjWARN_BADQACC), ("velocity", w.mjWARN_BADQVEL), ("position", w.mjWARN_BADQPOS)))
+        self.bad_qacc, self.bad_qvel, self.bad_qpos = (x[1] for x in self.warnings)
+        self.warning_counts = [x[1].number for x in self.warnings]  # each counter as of the last check
+        self.warnings_seen = sum(self.warning_counts)  # their sum (a step compares the sum)
+
+    def clone(self) -> CompiledScene:
+        """A copy for a fork: data of its own (a copy of this data: `mujoco.mj_copyData`, into data a
+        closed fork left when there is some), the index maps and the model shared; the model stays
+        shared until either scene writes it (`own_model`)."""
+        twin = copy.copy(self)
+        with _SHARING:
+            share = self.share
+            if share is None:
+                share = self.share = ModelShare()
+                share.scenes.add(self)
+            share.scenes.add(twin)
+            twin.share = share
+            data = share.spare.pop() if share.spare else None
+        if data is None:
+            data = mujoco.MjData(self.model)
+        mujoco.mj_copyData(data, self.model, self.data)
+        twin._attach(data)
+        return twin
+
+    def own_model(self) -> bool:
+        """Make ``model`` this scene's own before it is written: a copy of it when another scene
+        (a fork's, or the one it was forked from) still shares it. Whether it copied."""
+        if self.share is None:
+            return False
+        with _SHARING:  # the copy too: the last sharer left may not write while it is being copied
+            share, self.share = self.share, None
+            share.scenes.discard(self)
+            if not share.scenes:
+                return False
+            self.model = copy.deepcopy(self.model)
+        self.view = MujocoView(self.model, self.data, self.edits)
+        return True
+
+    def release(self) -> None:
+        """Let go of model and data (the core closes): a shared model's other scenes need not copy it
+        on this one's account, and they take its data for their next fork. The scene keeps neither:
+        a closed core's `MujocoCore.mj` is None."""
+        with _SHARING:
+            share, self.share = self.share, None
+            if share is not None and self.data is not None:
+                share.scenes.discard(self)
+                if share.scenes and len(share.spare) < SPARE_DATA:
+                    share.spare.append(self.data)
+        self.data = self.view = None
 
     def _map_bodies(self, layout: ms.Layout, edits: Edits) -> None:
         row = {b: r for r, b in enumerate(layout.bodies)}
@@ -192,6 +286,32 @@ class CompiledScene:
         ours = ms.VEL_PREFIX
         # values of the model's own sensors, at the start of sensordata (the core's velocity sensors follow)
         self.n_model_sensordata = sum(int(m.sensor_dim[s]) for n, s in sensors.items() if not n.startswith(ours))
+
+    def _map_free(self, layout: ms.Layout) -> None:
+        rows, ids, dofs = [], [], []
+        for row, b in enumerate(layout.free_bodies):
+            bid = self.body_id.get(b)
+            free = [self.joint_slices[j] for j in layout.body_joints[b]
+                    if j in self.joint_slices and self.joint_slices[j].nq == 7]
+            if bid is not None and free:  # not frozen (fused into the world, or kept as a static body)
+                rows.append(row)
+                ids.append(bid)
+                dofs.append(free[0].dof_adr)
+        self.free_rows = ms.flat_index(rows, 6)  # the moving free bodies' rows in body_wrench / body_velocity
+        self.free_xfrc = ms.flat_index(ids, 6)  # ... and their wrenches in xfrc_applied (flat)
+        # (row, body id, first dof of its free joint) of each: where a velocity input goes
+        self.free_dofs = tuple(zip(rows, ids, dofs, strict=True))
+        # row -> (body id, first dof) of the other moving free bodies welded to it (`make_joint`, through
+        # any chain of welds): a velocity set moves them with it, as one rigid body
+        group = {b: {b} for w in self.edits.welds for b in (w.a, w.b)}
+        for w in self.edits.welds:
+            if group[w.a] is not group[w.b]:
+                merged = group[w.a] | group[w.b]
+                for b in merged:
+                    group[b] = merged
+        moving = {layout.free_bodies[r]: (r, i, d) for r, i, d in self.free_dofs}
+        self.welded = {moving[b][0]: tuple(moving[o][1:] for o in sorted(group[b]) if o != b and o in moving)
+                       for b in moving if b in group}
 
 
 class MujocoCore(EditedCore):
@@ -253,6 +373,7 @@ class MujocoCore(EditedCore):
         if lay.actuators:
             ins.append(Port("ctrl", (len(lay.actuators),), "1"))
             ins += [Port(f"{a}.ctrl", (), "1", view_of=("ctrl", i)) for i, a in enumerate(lay.actuators)]
+        ins += body_inputs(lay.free_bodies)
         if lay.sensors:
             outs.append(Port("sensordata", (lay.nsensordata,), "1", doc="all sensor values, MuJoCo order"))
             views += [Port(f"sensor.{n}", (dim,), "1", view_of=("sensordata", adr)) for n, dim, adr in lay.sensors]
@@ -273,6 +394,8 @@ class MujocoCore(EditedCore):
         self._out_views(self._own_out)
         lay = self._layout
         self._force, self._ctrl = np.zeros(len(lay.qjoints)), np.zeros(len(lay.actuators))
+        self._wrench, self._vel = np.zeros(6 * len(lay.free_bodies)), np.full(6 * len(lay.free_bodies), np.nan)
+        self._vel_unset = self._vel.tobytes()  # the velocity inputs' bytes while they ask for nothing
         self._moves: tuple | None = None  # (structure, copies) of `step`, made on first use
 
     def _out_views(self, flat: np.ndarray) -> None:
@@ -295,7 +418,8 @@ class MujocoCore(EditedCore):
         elif self.out:
             raise DynabrainError(f"core {self.name!r}: its outputs are bound without `out_flat`; the core writes "
                                  "them through it (bind as the World does)")
-        for attr, key in (("_force", "joint_force"), ("_ctrl", "ctrl")):
+        for attr, key in (("_force", "joint_force"), ("_ctrl", "ctrl"), ("_wrench", "body_wrench"),
+                          ("_vel", "body_velocity")):
             if self.inp.get(key) is not None:
                 setattr(self, attr, np.asarray(self.inp[key]).reshape(-1))
 
@@ -313,8 +437,10 @@ class MujocoCore(EditedCore):
         moves = self._moves
         if moves is None or moves[0] is not s:
             moves = self._moves = (s, *self._plan_moves(s))
-        for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls
+        for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls, wrenches
             dst[di] = src[si]
+        if self._vel.tobytes() != self._vel_unset:  # a velocity input holds a value
+            self._set_velocities(s)
         mujoco.mj_step2(s.model, s.data)
         if self._nsub > 1:
             mujoco.mj_step(s.model, s.data, self._nsub - 1)
@@ -343,6 +469,29 @@ class MujocoCore(EditedCore):
             s.sensordata[:len(sensors)] = sensors  # acceleration-stage sensors of the last step
         self._write_all()
 
+    def _set_velocities(self, s: CompiledScene) -> None:
+        """Give each free body the velocity its input asks for (components that are not NaN; see
+        `PhysicsCore`), then compute the velocity-dependent half of the step again (the data is kept
+        after ``mj_step1``, computed with the old velocities), as `on_param` does."""
+        want, qvel, xmat, xpos, changed = self._vel, s.qvel, s.data.xmat, s.data.xpos, False
+        for row, bid, dof in s.free_dofs:
+            rot = xmat[bid].reshape(3, 3)  # body frame -> world; a free joint's angular velocity is in the body frame
+            omega = rot @ qvel[dof + 3:dof + 6]
+            lin, ang = requested_velocity(want[6 * row:6 * row + 6], qvel[dof:dof + 3], omega)
+            if lin is None and ang is None:
+                continue
+            if lin is not None:  # a free joint's linear velocity is its body origin's, in the world frame
+                qvel[dof:dof + 3] = lin
+            if ang is not None:
+                qvel[dof + 3:dof + 6] = rot.T @ ang
+            changed = True
+            for other, odof in s.welded.get(row, ()):  # what it is welded to moves with it, rigidly
+                omega = omega if ang is None else ang
+                qvel[odof:odof + 3] = qvel[dof:dof + 3] + np.cross(omega, xpos[other] - xpos[bid])
+                qvel[odof + 3:odof + 6] = xmat[other].reshape(3, 3).T @ omega
+        if changed:
+            mujoco.mj_step1(s.model, s.data)
+
     def on_param(self, name: str, value: Any) -> None:
         self._check_param(name, value)
         s = self._compiled
@@ -352,19 +501,26 @@ class MujocoCore(EditedCore):
         mujoco.mj_step1(s.model, s.data)
 
     def close(self) -> None:
+        """Let go of every compiled scene (a fork's next sibling may take their data: `CompiledScene.release`)."""
+        self._compiled.release()
+        for s in self._cache.values():
+            s.release()
         self._cache.clear()
+        self._view = None
 
     def __deepcopy__(self, memo: dict) -> MujocoCore:
-        """An independent copy (`fork`, `World.fork`): model and data copied, unbound; the cache of
-        other structures starts empty (they are recompiled, identically, when needed)."""
+        """An independent copy (`fork`, `World.fork`), unbound, that copies only what changes: the
+        MuJoCo data of the current structure. It shares what never changes: the spec source, the port
+        layout, the index maps, and the compiled model until either core writes it (a run-time parameter
+        change copies it first: `CompiledScene.own_model`); the parameter dict is shared too, as history
+        shares it (a change makes a new one). The cache of other structures starts empty (they are
+        recompiled, identically, when needed)."""
         twin = copy.copy(self)
         memo[id(self)] = twin
         twin.bind_ports(None)
         twin._unbind()
-        twin._param_values = dict(self._param_values)
-        twin._source = self._source.copy()
         twin._cache = OrderedDict()
-        twin._use(twin._remember(self._compiled.clone(self._layout)))
+        twin._use(twin._remember(self._compiled.clone()))
         return twin
 
     def refresh_outputs(self) -> None:
@@ -383,9 +539,17 @@ class MujocoCore(EditedCore):
             raise ms.fail(self.name, f"parameter {name} = {value!r} is out of range")
 
     def _apply_params(self, s: CompiledScene) -> None:
-        """Apply every run-time parameter to a structure's model (idempotent)."""
-        m, p = s.model, self._param_values
+        """Apply every run-time parameter to a structure's model (idempotent). The only place the
+        core writes a model: it makes it the structure's own first (a fork may share it), and does
+        nothing when the model holds these very values already (the same parameter dict and period:
+        dicts are never changed in place)."""
+        p = self._param_values
         self._nsub = int(p["substeps"])
+        if s.applied is not None and s.applied[0] is p and s.applied[1] == self._period:
+            return
+        if s.own_model() and s is self._compiled:
+            self._view = s.view
+        m = s.model
         dt = self._period / self._nsub
         m.opt.timestep = dt
         m.opt.gravity[:] = p["gravity"]
@@ -399,6 +563,7 @@ class MujocoCore(EditedCore):
         if len(s.weld_ids):
             m.eq_solref[s.weld_ids] = (2.0 * dt, 1.0)
             m.eq_solimp[s.weld_ids] = (0.99, 0.99, 0.001, 0.5, 2.0)
+        s.applied = (p, self._period)
 
     # -- outputs ------------------------------------------------------------------------------------------------
     def _write_outputs(self, s: CompiledScene) -> None:
@@ -419,6 +584,8 @@ class MujocoCore(EditedCore):
             ins.append((s.qfrc_applied, s.joint_dof_adr, self._force, s.joint_rows))
         if len(s.ctrl):
             ins.append((s.ctrl, slice(None), self._ctrl, s.ctrl_rows))
+        if not _empty(s.free_rows):
+            ins.append((s.xfrc_flat, s.free_xfrc, self._wrench, s.free_rows))
         outs: list[list] = []  # [dst index in self._out, src array, src index], in output order
         for block, rows, src, index in (("body_pos", s.moving_pos_rows, s.xpos_flat, s.moving_pos_src),
                                         ("body_quat", s.moving_quat_rows, s.xquat_flat, s.moving_quat_src),

@@ -19,7 +19,6 @@ grid of damping ratios and inverting that curve (`damping_ratio`).
 
 from __future__ import annotations
 
-import copy
 import os
 import threading
 from collections.abc import Sequence
@@ -68,10 +67,15 @@ def fail(core: str, message: str) -> DynabrainError:
 
 
 # -- specs ----------------------------------------------------------------------------------------------
+_BASE_LOCK = threading.Lock()
+
+
 class SpecSource:
     """Makes the spec of a structure. A primitive scene is rebuilt from its bodies, frozen bodies
     without their joints (fast); an MJCF model is copied and the frozen joints are deleted (deleting
-    is slow in MuJoCo, about 0.4 ms a joint, so only done for model files)."""
+    is slow in MuJoCo, about 0.4 ms a joint, so only done for model files).
+
+    Never changed once made (`spec` edits a copy of the base), so a core's forks share it."""
 
     def __init__(self, core: str, scene: SceneSpec, scenario_dir: str | None):
         if scene.model and scene.bodies:
@@ -89,17 +93,14 @@ class SpecSource:
             spec = _finish(self.core, _spec_from_bodies(self.core, self.scene.bodies, bake), self.scene)
             removed: set[str] = set()  # frozen bodies were built without joints
         else:
-            spec, removed = self.base.copy(), set()
+            with _BASE_LOCK:  # forks share the base and may compile in threads
+                spec = self.base.copy()
+            removed = set()
             for name, rel in bake.items():
                 removed |= _bake(spec.body(name), rel, spec)
         for name in bake:
             spec.body(name).fuse = 1
         return spec, removed
-
-    def copy(self) -> SpecSource:
-        twin = copy.copy(self)
-        twin.base = self.base.copy() if self.base is not None else None
-        return twin
 
 
 def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec) -> mujoco.MjSpec:
@@ -253,6 +254,9 @@ class Layout:
     subtree: dict[str, tuple[str, ...]]
     body_joints: dict[str, tuple[str, ...]]
     free: frozenset[str]
+    free_bodies: tuple[str, ...]
+    """The bodies with a free joint, in body order: the rows of the ``body_wrench`` and
+    ``body_velocity`` input blocks."""
     joints: tuple[str, ...]
     qjoints: tuple[str, ...]
     qunits: tuple[tuple[str, str], ...]
@@ -284,6 +288,7 @@ def make_layout(model: mujoco.MjModel) -> Layout:
     return Layout(bodies=names, parents=parents,
                   objects=tuple(n for n, p in zip(names, parents, strict=True) if p is None),
                   subtree={k: tuple(v) for k, v in subtree.items()}, body_joints=body_joints, free=free,
+                  free_bodies=tuple(n for n in names if n in free),
                   joints=joints, qjoints=tuple(joints[j] for j in qj), qunits=qunits,
                   actuators=tuple(model.actuator(a).name for a in range(model.nu)), sensors=sensors,
                   nsensordata=sum(s[1] for s in sensors), geoms=_geom_info(model, names))
