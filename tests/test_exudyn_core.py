@@ -252,3 +252,25 @@ def test_prints_nothing_and_writes_no_files(capfd, tmp_path):
     captured = capfd.readouterr()
     assert captured.out == "" and captured.err == ""
     assert not list(tmp_path.iterdir())
+
+
+def test_a_push_rides_on_the_carriers_loads_and_comes_off_exactly():
+    core, inp, _ = make_core(box("a", (0.1, 0.1, 0.1), (0, 0, 2.0), mass=2.0),
+                             box("c", (0.1, 0.1, 0.1), (0.3, 0, 2.0), mass=0.5))
+    s = core._s
+    gravity, torque = s.free[0][2], s.torque_loads[0]
+    assert list(s.mbs.GetLoad(gravity)["loadVector"]) == [0.0, 0.0, -G]
+    inp["a.wrench"][:] = (4.0, 0.0, 0.0, 0.0, 0.0, 0.5)
+    run(core, 1)
+    assert list(s.mbs.GetLoad(gravity)["loadVector"]) == pytest.approx([2.0, 0.0, -G])  # force / mass
+    assert list(s.mbs.GetLoad(torque)["loadVector"]) == [0.0, 0.0, 0.5]
+    assert list(s.mbs.GetLoad(s.free[1][2])["loadVector"]) == [0.0, 0.0, -G]  # c: untouched
+    inp["a.wrench"][:] = 0.0
+    run(core, 1)
+    assert list(s.mbs.GetLoad(gravity)["loadVector"]) == [0.0, 0.0, -G] and not s.pushing  # gravity, exactly
+    assert list(s.mbs.GetLoad(torque)["loadVector"]) == [0.0, 0.0, 0.0]
+    core.set_param("gravity", (0.0, 0.0, -3.0))  # a parameter change keeps a push that holds
+    inp["c.wrench"][:] = (0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+    run(core, 1)
+    core.set_param("gravity", (0.0, 0.0, -1.0))
+    assert list(s.mbs.GetLoad(s.free[1][2])["loadVector"]) == pytest.approx([0.0, 2.0, -1.0])
