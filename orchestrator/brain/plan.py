@@ -63,7 +63,8 @@ class Node:
     action: Action | None = None
     parent: Node | None = None
     signals: dict[str, np.ndarray] = field(default_factory=dict)
-    """What the action that led here recorded, ``(ticks, *shape)`` per signal."""
+    """What the action that led here recorded, ``(ticks, *shape)`` per signal (the root: one row, the
+    values at the start), so ``node.signals[name][-1]`` is a signal's value at this node."""
 
     def path(self) -> list[Node]:
         """The nodes from the root to this one."""
@@ -168,15 +169,15 @@ def search(world: World, actions: Sequence[Action], *, record: Sequence[str], go
     t0 = time.perf_counter()
     try:
         root_state = start if start is not None else world.export_state()
-        held = {name: np.asarray(world.get(name), dtype=np.float64) for name in driven}
-        if start is not None:  # the inputs' values in that state
+        held = {name: np.asarray(world.get(name), dtype=np.float64) for name in signals}
+        if start is not None:  # the values in that state
             twin = world.fork()
             try:
                 twin.import_state(start)
-                held = {name: np.asarray(twin.get(name), dtype=np.float64) for name in driven}
+                held = {name: np.asarray(twin.get(name), dtype=np.float64) for name in signals}
             finally:
                 twin.close()
-        root = Node(root_state, 0.0, 0.0, 0, signals={n: held[n][None] for n in driven})
+        root = Node(root_state, 0.0, 0.0, 0, signals={n: held[n][None] for n in signals})
         order = itertools.count()
         frontier: list[tuple[float, int, Node]] = [(0.0, next(order), root)]
         best = root
