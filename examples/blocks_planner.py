@@ -109,12 +109,12 @@ def start_positions(o: Outcome) -> dict[str, np.ndarray]:
     return {b: o.parent.signals[f"core.{b}.pos"][-1] for b in BLOCKS}
 
 
-def plan(world, speeds: tuple[str, ...], *, careful: bool = False, backend: str = "auto",
+def plan(world, speeds: tuple[str, ...], *, careful: bool = False, backend: str = "auto", batch=None,
          max_expansions: int = 300) -> Plan:
     """A* over pushes (one push costs 1). ``careful``: only blocks with nothing on them are moved, as a
     symbolic planner that does not simulate would insist."""
     return search(world, actions(world.dt_ns * 1e-9, speeds), record=RECORD, heuristic=heuristic, goal=goal,
-                  failed=careless if careful else fell, cost=lambda o: 1.0, backend=backend,
+                  failed=careless if careful else fell, cost=lambda o: 1.0, backend=backend, batch=batch,
                   max_expansions=max_expansions)
 
 
