@@ -82,6 +82,7 @@ forces) and ``xfrc_applied`` (the free bodies' wrenches) from its inputs before 
 carry no state (and for free bodies they were 40 % of it)."""
 CACHE_SIZE = 16
 DEFAULT_PERIOD_S = 0.002
+_step1, _step2 = mujoco.mj_step1, mujoco.mj_step2  # the two halves of a step, looked up once
 SPARE_DATA = 4
 """MuJoCo data kept per shared model from closed forks, for the next forks (`ModelShare`)."""
 _SHARING = threading.Lock()  # guards every `ModelShare` (forks step, and close, in threads)
@@ -441,10 +442,11 @@ class MujocoCore(EditedCore):
             dst[di] = src[si]
         if self._vel.tobytes() != self._vel_unset:  # a velocity input holds a value
             self._set_velocities(s)
-        mujoco.mj_step2(s.model, s.data)
+        m, d = s.model, s.data
+        _step2(m, d)
         if self._nsub > 1:
-            mujoco.mj_step(s.model, s.data, self._nsub - 1)
-        mujoco.mj_step1(s.model, s.data)
+            mujoco.mj_step(m, d, self._nsub - 1)
+        _step1(m, d)
         bad = s.bad_qpos.number + s.bad_qvel.number + s.bad_qacc.number
         if bad != s.warnings_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
             raise PhysicsDivergedError(self.name, "step", None, self._divergence(s, bad))
