@@ -304,7 +304,12 @@ class World:
                 obs.on_rollback(self._view, from_tick)
 
     def fork(self, name: str | None = None) -> World:
-        """An independent world in the same state (for prediction: plan, try, discard)."""
+        """An independent world in the same state (for prediction: plan, try, discard). It copies the
+        state (the bus, each module's copy) and shares what never changes: the structure's layout,
+        checks and copies (`rebind_structure`), the modules' parameter dicts, and what the modules
+        share themselves (a MuJoCo core's compiled model, until either world changes a parameter).
+        The humanoid's fork takes about 0.6 ms (bench/predict.py); close forks you are done with: a
+        MuJoCo core's next fork takes over the closed one's data."""
         import copy
 
         with self._lock:
