@@ -13,6 +13,7 @@ from .errors import (
     ConnectError,
     ModuleFailedError,
     NoWorldError,
+    TickStoppedError,
     WorldBusyError,
     WorldRefusedError,
     WorldRestartedError,
@@ -20,8 +21,8 @@ from .errors import (
 
 __all__ = [
     "BadRequestError", "BatchReply", "BrainClient", "BridgeError", "CallTimeoutError", "ConnectError",
-    "ModuleFailedError", "NoWorldError", "Snapshot", "StateFrame", "View", "WorldBusyError", "WorldRefusedError",
-    "WorldRestartedError", "publish_recording",
+    "ModuleFailedError", "NoWorldError", "Snapshot", "StateFrame", "TickStoppedError", "View", "WorldBusyError",
+    "WorldRefusedError", "WorldRestartedError", "publish_recording",
 ]
 
 

@@ -7,6 +7,10 @@ frame), snapshots by handle, brain inputs held until the next step boundary, bat
 raises and changes nothing (the World's own guarantee; a failed tick is rolled back by the World). The calls it
 answers are the world's calls of `protocol.TABLE`, one ``do_<call>`` method each; the server answers
 the others (holds, forks, the loop, robots, its status).
+
+A long ``tick`` runs in slices of about `SLICE_S` of wall-clock
+time; between two slices the world lock is free and `WorldService.between_slices` (the server's hook)
+answers other calls, and may end the tick (`StoppedTickError`).
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from __future__ import annotations
 import fnmatch
 import os
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -35,6 +40,16 @@ from .batching import BatchCall, BatchSettings, KeptState, Stored
 DEFAULT_ALLOW_PYTHON = ("dynabrain.*",)
 """Module classes a remote brain may add (``fnmatch`` patterns on ``package.module:Class``)."""
 STREAM_VIEW = 0
+SLICE_S = 0.05
+"""Wall-clock seconds a long ``tick`` runs before it lets other calls in (`WorldService.between_slices`)."""
+
+
+class StoppedTickError(DynabrainError):
+    """A ``stop`` ended a ``tick`` before its end: ``detail`` says how many ticks ran (they are kept)."""
+
+    def __init__(self, message: str, detail: dict[str, Any]):
+        super().__init__(message)
+        self.detail = detail
 
 
 @dataclass
@@ -107,6 +122,9 @@ class WorldService:
                  base_dir: str | None = None, max_snapshots: int = 64, max_views: int = 256,
                  stream: Sequence[str] = (), batch: BatchSettings | None = None):
         self.world = world
+        self.between_slices: Callable[[int, int], str | None] | None = None
+        """Called between two slices of a long ``tick`` (the world lock free) with the ticks done and
+        asked; returns None to go on, or who stopped the tick. None: a tick runs whole."""
         self.instance = instance
         self.allow_python = tuple(allow_python)
         self.base_dir = base_dir
@@ -138,15 +156,28 @@ class WorldService:
 
     # -- stepping -------------------------------------------------------------------------------------------
     def do_tick(self, a: p.TickArgs) -> Any:
-        w = self.world
-        with w.lock():
-            if a.view is not None:
-                self.get_view(a.view)  # refused before any tick when the view is unknown
-            for _ in range(a.n):
-                if self._pending:
-                    self.apply_pending()
-                w.tick()
-            return self.frame(self.get_view(a.view)) if a.view is not None else None
+        w, between = self.world, self.between_slices
+        done = 0
+        while True:
+            with w.lock():
+                if done == 0 and a.view is not None:
+                    self.get_view(a.view)  # refused before any tick when the view is unknown
+                end = time.monotonic() + SLICE_S
+                while done < a.n:
+                    if self._pending:
+                        self.apply_pending()
+                    w.tick()
+                    done += 1
+                    if between is not None and time.monotonic() > end:
+                        break
+                if done >= a.n:
+                    return self.frame(self.get_view(a.view)) if a.view is not None else None
+            stopped_by = between(done, a.n)
+            if stopped_by is not None:
+                raise StoppedTickError(
+                    f"tick stopped by brain {stopped_by!r} after {done} of {a.n} ticks (they are kept: the world "
+                    f"is at tick {w.tick_count})",
+                    {"ticks_done": done, "ticks_asked": a.n, "tick": w.tick_count, "by": stopped_by})
 
     def do_backtick(self, a: p.BacktickArgs) -> None:
         self.world.backtick(a.n)

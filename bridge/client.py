@@ -39,7 +39,15 @@ from dynabrain.orchestrator.brain import BranchStatus
 
 from . import frames
 from . import protocol as p
-from .errors import ERRORS, BadRequestError, BridgeError, CallTimeoutError, NoWorldError, WorldRefusedError
+from .errors import (
+    ERRORS,
+    BadRequestError,
+    BridgeError,
+    CallTimeoutError,
+    NoWorldError,
+    TickStoppedError,
+    WorldRefusedError,
+)
 from .zenoh_io import DEFAULT_ENDPOINT, JSON, Settings, open_session, payload_bytes
 
 
@@ -228,9 +236,14 @@ class BrainClient:
             try:
                 body = json.loads(data)
                 kind, message = str(body["error"]), str(body["message"])
-            except (ValueError, KeyError, TypeError):
+                detail = body.get("detail")
+            except (ValueError, KeyError, TypeError, AttributeError):
                 raise BridgeError(f"{name}: an error reply that is not the bridge's: {data[:200]!r}") from None
-            raise ERRORS.get(kind, WorldRefusedError)(kind, message, name)
+            cls = ERRORS.get(kind, WorldRefusedError)
+            error = cls(kind, message, name, detail if isinstance(detail, dict) else None)
+            if isinstance(error, TickStoppedError) and error.tick is not None:
+                self.last_tick = error.tick
+            raise error
         data = sample.payload.to_bytes()
         if data[:4] == frames.MAGIC:  # no JSON reply starts so
             return frames.unpack(data)
@@ -278,6 +291,8 @@ class BrainClient:
         return self.call("start", realtime=realtime, until=until)
 
     def stop(self) -> dict[str, Any]:
+        """End the world's loop, and the tick running on it (its caller gets `TickStoppedError`);
+        ``stopped`` in the reply says how far that tick got, or is None."""
         return self.call("stop")
 
     def make(self, objects: Sequence[str] | str) -> list[str]:
@@ -297,7 +312,12 @@ class BrainClient:
                   quat=None if quat is None else [float(x) for x in quat])
 
     def set(self, name: str, value: Any) -> None:
-        self.call("set", name=name, value=p.plain(value))
+        """Set a run-time parameter or an unconnected input. NaN goes as null (it means "unset" in an input
+        that starts NaN); an infinity is refused here, nothing sent."""
+        value = p.plain(value)
+        if _has_infinity(value):
+            raise BadRequestError("bad_request", f"{name}: an infinite value cannot be set; nothing sent", "set")
+        self.call("set", name=name, value=value)
 
     def get(self, name: str) -> Any:
         value = self.call("get", name=name)
@@ -508,6 +528,16 @@ def _finite_list(values: Any, name: str) -> list[Any]:
     if not np.isfinite(arr).all():
         raise BadRequestError("bad_request", f"inputs[{name!r}]: NaN or infinite values; nothing sent", "batch")
     return arr.tolist()
+
+
+def _has_infinity(value: Any) -> bool:
+    if isinstance(value, float):
+        return value in (float("inf"), float("-inf"))
+    if isinstance(value, (list, tuple)):
+        return any(_has_infinity(v) for v in value)
+    if isinstance(value, dict):
+        return any(_has_infinity(v) for v in value.values())
+    return False
 
 
 def _targets(targets: Sequence[float] | dict[str, float]) -> list[float] | dict[str, float]:

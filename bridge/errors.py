@@ -8,10 +8,13 @@ Three different situations, three different errors:
   went away: its liveliness token is gone); `CallTimeoutError`: the world is alive but did not answer in
   time (it may still be running the call);
 - `WorldRefusedError` and its subclasses: the world answered and refused, with its reason. Nothing was done,
-  except for `ModuleFailedError` where the failed tick was rolled back by the world.
+  except for `ModuleFailedError` where the failed tick was rolled back by the world, and `TickStoppedError`
+  where a ``stop`` ended a tick early (the ticks done stay).
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 
@@ -35,8 +38,10 @@ class CallTimeoutError(BridgeError):
 class WorldRefusedError(BridgeError):
     """The world refused the call; ``kind`` says why (see `protocol.ERROR_KINDS`)."""
 
-    def __init__(self, kind: str, message: str, call: str | None = None):
+    def __init__(self, kind: str, message: str, call: str | None = None, detail: dict[str, Any] | None = None):
         self.kind, self.call, self.reason = kind, call, message
+        self.detail = detail or {}
+        """What the error reply carries beside its message (`TickStoppedError`: the ticks done)."""
         super().__init__(f"world refused {call or 'the call'} ({kind}): {message}")
 
 
@@ -52,11 +57,29 @@ class ModuleFailedError(WorldRefusedError):
     """A module failed during the call's ticks; the world rolled the failed tick back."""
 
 
+class TickStoppedError(WorldRefusedError):
+    """A ``stop`` ended this tick early; the ticks done stay (``ticks_done`` of ``ticks_asked``; the world is
+    at ``tick``)."""
+
+    @property
+    def ticks_done(self) -> int:
+        return int(self.detail.get("ticks_done", 0))
+
+    @property
+    def ticks_asked(self) -> int:
+        return int(self.detail.get("ticks_asked", 0))
+
+    @property
+    def tick(self) -> int | None:
+        tick = self.detail.get("tick")
+        return None if tick is None else int(tick)
+
+
 class WorldRestartedError(WorldRefusedError):
     """The server restarted since this brain's last call: its world state is new. Call ``reattach()``."""
 
 
 ERRORS: dict[str, type[WorldRefusedError]] = {
     "bad_request": BadRequestError, "unknown_call": BadRequestError, "busy": WorldBusyError,
-    "module_error": ModuleFailedError, "restarted": WorldRestartedError,
+    "module_error": ModuleFailedError, "restarted": WorldRestartedError, "stopped": TickStoppedError,
 }

@@ -8,8 +8,9 @@ dispatches through it (`handlers`: ``do_<call>`` of `WorldService` or of `Bridge
 the table once per class), the client validates what it sends against it, and the schema and the
 document are written from it.
 
-Every model refuses unknown fields and wrong types (strict: ``"1"`` is not an int); a payload larger
-than its limit is refused before it is parsed.
+Every model refuses unknown fields and wrong types (strict: ``"1"`` is not an int) and non-finite numbers
+in its number fields (``NaN``, ``Infinity``, ``1e999``); a payload larger than its limit is refused before it
+is parsed.
 """
 
 from __future__ import annotations
@@ -38,6 +39,10 @@ MAX_BATCH_BYTES = 8 * 1024 * 1024
 """Largest ``batch`` command accepted (its inputs are arrays of ticks), under the session's 16 MiB messages."""
 MAX_BATCH_BRANCHES = 4096
 """Most branches of one ``batch`` call (each server also caps branches x ticks: ``--batch-max-ticks``)."""
+MAX_UNTIL_S = 1e9
+"""Latest simulated time (s) a ``start`` may run until."""
+TOKENLESS_LEASE_S = 10.0
+"""Default lease (s) of a hold whose brain has no liveliness token (``dynabrain serve --tokenless-lease``)."""
 WORLD_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}$")
 JSON_ENCODING = "application/json"
 FRAME_ENCODING = "application/octet-stream;dynabrain.frame.v1"
@@ -74,7 +79,7 @@ def robot_key(world: str, robot: str, *parts: str) -> str:
 
 # -- commands ----------------------------------------------------------------------------------------------
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
 
 Name = Annotated[str, Field(min_length=1, max_length=256)]
@@ -112,7 +117,7 @@ class BacktickArgs(_Strict):
 class StartArgs(_Strict):
     realtime: bool | Annotated[float, Field(gt=0, le=1000)] = False
     """False: as fast as possible; True: real time; a number: a speed factor."""
-    until: Annotated[float, Field(ge=0)] | None = None
+    until: Annotated[float, Field(ge=0, le=MAX_UNTIL_S)] | None = None
     """Stop by itself at this simulated time (s)."""
 
 
@@ -186,7 +191,8 @@ class ViewRef(_Strict):
 
 class AcquireArgs(_Strict):
     lease: Annotated[float, Field(gt=0, le=3600)] = 30.0
-    """Seconds the hold lasts without a call from its brain."""
+    """Seconds the hold lasts without a call from its brain (at most the server's tokenless lease, 10 s by
+    default, while the brain has no liveliness token)."""
 
 
 SnapshotId = Annotated[int, Field(ge=0)]
@@ -258,11 +264,13 @@ class Call:
 
 TABLE: dict[str, Call] = {
     "tick": Call(TickArgs, "`n` (1..1e6, default 1), `view` (optional)",
-                 "null, or the view's STATE frame after the ticks"),
+                 "null, or the view's STATE frame after the ticks; a `stop` ends a long one early (error "
+                 "`stopped`, with the ticks done)"),
     "backtick": Call(BacktickArgs, "`n` (default 1)", "null; the world as it was `n` ticks ago, exactly"),
     "start": Call(StartArgs, "`realtime` (false, true, or a speed factor), `until` (s, optional)",
                   "`{running, realtime, until_tick}`", server=True),
-    "stop": Call(NoArgs, "", "`{running: false, error}`", server=True),
+    "stop": Call(NoArgs, "", "`{running: false, error, stopped}`: ends the loop and a `tick` running on this world "
+                 "(`stopped`: `{brain, ticks_done, ticks_asked}` of that tick, or null)", server=True),
     "make": Call(ObjectsArgs, "`objects` (names or glob patterns)", "the selection"),
     "make_joint": Call(MakeJointArgs, "`a`, `b`, `name` (optional)", "the joint's name"),
     "remove_joint": Call(NameArgs, "`name`", ""),
@@ -289,12 +297,13 @@ TABLE: dict[str, Call] = {
     "fork": Call(ForkArgs, "`name` (optional)", "`{world: <fork name>, tick}`", server=True, slow=True),
     "close": Call(NoArgs, "(on a fork)", "", server=True, slow=True),
     "status": Call(NoArgs, "", "the world's status, its stream layout, robots, and `server` (brains, holder, forks, "
-                   "loop)", read_only=True, server=True),
+                   "loop, `running`: the tick running and how far it got)", read_only=True, server=True),
     "view": Call(ViewArgs, "`signals` (names or patterns, in order)",
                  "`{view: id, size, signals: [{name, shape, unit, offset}]}`", read_only=True),
     "read": Call(ViewRef, "`view`", "a STATE frame", read_only=True),
     "drop_view": Call(ViewRef, "`view`", "", read_only=True),
-    "acquire": Call(AcquireArgs, "`lease` (s, default 30)", "`{holder, lease}`", server=True),
+    "acquire": Call(AcquireArgs, "`lease` (s, default 30; at most 10 while the brain has no liveliness token)",
+                    "`{holder, lease}`", server=True),
     "release": Call(NoArgs, "", "`{holder: null}`", server=True),
     "motion": Call(MotionArgs, "`robot`, `targets` (a list in the rig's joint order, or `{joint: value}`), `route` "
                    "(`sim`, `robot`, `both`), `sent_ns`, `seq`",
@@ -362,17 +371,20 @@ class Reply(_Strict):
 
 
 ERROR_KINDS = ("bad_request", "unknown_call", "busy", "refused", "module_error", "rollback", "restarted",
-               "closed", "internal")
+               "closed", "stopped", "internal")
 
 
 class ErrorReply(_Strict):
     """An error reply (sent with Zenoh's reply_err): nothing was done, except for ``module_error``,
-    where the failed tick was rolled back."""
+    where the ticks before the failed one stay and the failed one was rolled back, and ``stopped``,
+    where a ``stop`` ended a ``tick`` early and the ticks done stay."""
 
     error: Literal[ERROR_KINDS]  # type: ignore[valid-type]
     message: str
     call: str | None = None
     instance: int | None = None
+    detail: dict[str, Any] | None = None
+    """``stopped``: ``{ticks_done, ticks_asked, tick, by}`` (the world's tick after the call, the stopping brain)."""
 
 
 class WorldEventMsg(_Strict):

@@ -13,8 +13,11 @@
 Calls are serialised by one lock. A short call runs at once on the Zenoh thread that delivered it; a
 long one (many ticks, or a call `protocol.TABLE` marks ``slow``: a new module, a fork) or one arriving
 while another runs goes to a worker thread in arrival order, so Zenoh's threads are never blocked for
-long. Each call is answered by the ``do_<call>`` method the table names: this server's (``server``
-calls: holds, forks, the loop, robots, its status) or its `WorldService`'s (the world's calls).
+long. Read-only calls and ``stop`` that arrive while another call runs do not wait behind the queue: a
+long ``tick`` runs in slices (`calls.SLICE_S`) and answers them between two slices (a ``stop`` ends it
+there, error ``stopped`` with the ticks done), and the worker answers them before its next queued call.
+Each call is answered by the ``do_<call>`` method the table names: this server's (``server`` calls:
+holds, forks, the loop, robots, its status) or its `WorldService`'s (the world's calls).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import logging
 import os
 import queue
 import threading
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,7 +40,7 @@ from dynabrain.orchestrator.kernel.world import World
 
 from . import protocol as p
 from .batching import BatchSettings
-from .calls import DEFAULT_ALLOW_PYTHON, WorldService
+from .calls import DEFAULT_ALLOW_PYTHON, StoppedTickError, WorldService
 from .holds import BusyError, Hold
 from .loop import Loop
 from .robot_link import RobotLink
@@ -45,6 +49,8 @@ from .zenoh_io import FRAME, JSON, Settings, open_session, payload_bytes
 
 _log = logging.getLogger("dynabrain.bridge")
 MAX_FORKS = 16
+URGENT = p.READ_ONLY | {"stop"}
+"""Calls answered between two slices of a long tick, and before the queued calls."""
 
 
 class _RestartedError(DynabrainError):
@@ -71,6 +77,23 @@ class ServeOptions:
     """A ``tick`` of at most this many steps runs on the Zenoh thread that delivered it."""
     batch: BatchSettings = field(default_factory=BatchSettings)
     """How ``batch`` calls run on the served world (its forks run theirs with the ``serial`` backend)."""
+    tokenless_lease_s: float = p.TOKENLESS_LEASE_S
+    """Most seconds of silence a hold lasts while its brain has no liveliness token."""
+
+
+@dataclass
+class _Ticking:
+    """The ``tick`` running now: on which world, for which brain, how far; who asked it to stop."""
+
+    served: _Served
+    brain: str | None
+    asked: int
+    done: int = 0
+    stop_by: str | None = None
+
+    def describe(self) -> dict[str, Any]:
+        return {"world": self.served.name, "call": "tick", "brain": self.brain, "ticks_done": self.done,
+                "ticks_asked": self.asked}
 
 
 @dataclass
@@ -104,6 +127,8 @@ class BridgeServer:
         self._served: dict[str, _Served] = {}
         self._call_lock = threading.Lock()
         self._jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._urgent: deque[tuple] = deque()
+        self._ticking: _Ticking | None = None
         self._worker: threading.Thread | None = None
         self._entities: list[Any] = []
         self._fork_count = 0
@@ -124,7 +149,7 @@ class BridgeServer:
         s, name, opts = self.session, self.name, self.options
         self.events = EventSink(s, name)
         self.events.tick_of = lambda: self.world.tick_count
-        self.hold = Hold(name, self.events.emit)
+        self.hold = Hold(name, self.events.emit, tokenless_lease=opts.tokenless_lease_s)
         service = WorldService(self.world, instance=self.instance, allow_python=opts.allow_python,
                                base_dir=opts.base_dir, stream=self._stream_signals() if opts.decimate else (),
                                batch=opts.batch)
@@ -162,6 +187,7 @@ class BridgeServer:
         queryable matching a query (a catch-all for unknown names) doubles the cost of every call in
         Zenoh, so access control filters the queries themselves (see zenoh-secure.json5)."""
         served = _Served(name, service, owner=owner)
+        service.between_slices = lambda done, asked: self._between_slices(served, done, asked)
         served.queryables.append(self.session.declare_queryable(
             p.key(name, "call", "*"), lambda query: self._on_query(served, query), complete=True))
         self._served[name] = served
@@ -227,7 +253,29 @@ class BridgeServer:
             finally:
                 self._call_lock.release()
             return
+        if call in URGENT:  # answered between two slices of a long tick, or by the worker before its queue
+            self._urgent.append(job)
+            self._jobs.put(self._run_urgent)
+            return
         self._jobs.put(lambda: self._run(job))
+
+    def _run_urgent(self) -> None:
+        """Answer the read-only calls and stops waiting (the caller holds the call lock)."""
+        while True:
+            try:
+                job = self._urgent.popleft()
+            except IndexError:
+                return
+            self._run(job)
+
+    def _between_slices(self, served: _Served, done: int, asked: int) -> str | None:
+        """Between two slices of a long tick on ``served`` (the call lock held, the world lock free):
+        answer the urgent calls; the brain that stopped the tick, or None."""
+        ticking = self._ticking
+        if ticking is not None:
+            ticking.done = done
+        self._run_urgent()
+        return ticking.stop_by if ticking is not None else None
 
     def _work(self) -> None:
         while True:
@@ -236,6 +284,7 @@ class BridgeServer:
                 return
             try:
                 with self._call_lock:
+                    self._run_urgent()  # read-only calls and stops go before the queue
                     job()
             except Exception:  # a bug in a job: log it, keep serving
                 _log.exception("bridge job failed")
@@ -256,15 +305,18 @@ class BridgeServer:
             kind, message = _classify(exc)
             if kind == "internal":
                 _log.exception("call %s failed unexpectedly", call)
-            self._reply_error(query, kind, message, call)  # drops the query
+            self._reply_error(query, kind, message, call, getattr(exc, "detail", None))  # drops the query
             return
         try:
             query.drop()  # the final answer: the brain stops waiting now
         except Exception as exc:  # the brain is gone
             _log.debug("dropping the query of %s: %s", call, exc)
 
-    def _reply_error(self, query: zenoh.Query, kind: str, message: str, call: str | None) -> None:
+    def _reply_error(self, query: zenoh.Query, kind: str, message: str, call: str | None,
+                     detail: dict[str, Any] | None = None) -> None:
         body = {"error": kind, "message": message, "call": call, "instance": self.instance}
+        if detail is not None:
+            body["detail"] = detail
         try:
             query.reply_err(p.encode(body), encoding=JSON)
         except Exception as exc:  # the brain is gone; nothing to answer
@@ -284,15 +336,21 @@ class BridgeServer:
         if is_main:
             self.hold.check(call, env.brain)
         handler = self._handlers.get(call)  # a server call; otherwise the world's
-        result = handler(served, env, args) if handler is not None else served.service.call(call, args)
-        if is_main:
-            self.hold.touch(env.brain)
-        return result
+        ticking = _Ticking(served, env.brain, args.n) if call == "tick" else None
+        outer = self._ticking
+        with self.hold.calling(env.brain) if is_main else contextlib.nullcontext():
+            if ticking is not None:
+                self._ticking = ticking
+            try:
+                return handler(served, env, args) if handler is not None else served.service.call(call, args)
+            finally:
+                if ticking is not None:
+                    self._ticking = outer
 
     # -- holds ----------------------------------------------------------------------------------------------
     def do_acquire(self, served: _Served, env: p.Envelope, args: p.AcquireArgs) -> dict[str, Any]:
         self._require_main(served, "acquire")
-        return self.hold.acquire(env.brain, args.lease)
+        return self.hold.acquire(env.brain, args.lease, has_token=env.brain in self.brains)
 
     def do_release(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
         self._require_main(served, "release")
@@ -307,6 +365,7 @@ class BridgeServer:
         brain = str(sample.key_expr).rsplit("/", 1)[-1]
         if sample.kind == zenoh.SampleKind.PUT:
             self.brains.add(brain)
+            self.hold.token_seen(brain)
             self.events.emit("brain_joined", brain=brain)
             return
         self.brains.discard(brain)
@@ -356,8 +415,16 @@ class BridgeServer:
         return self.loop.start(args.realtime, args.until)
 
     def do_stop(self, served: _Served, env: p.Envelope, args: p.NoArgs) -> dict[str, Any]:
-        self._require_main(served, "stop")
-        return self.loop.stop()
+        """End the loop (the served world's) and the tick running on ``served``, if any: that tick stops
+        before its next slice and answers ``stopped``."""
+        out = self.loop.stop() if served is self.main else {"running": False, "error": None}
+        ticking = self._ticking
+        if ticking is not None and ticking.served is served and ticking.stop_by is None:
+            ticking.stop_by = env.brain or "(no id)"
+            out["stopped"] = {"brain": ticking.brain, "ticks_done": ticking.done, "ticks_asked": ticking.asked}
+        else:
+            out["stopped"] = None
+        return out
 
     # -- robots ---------------------------------------------------------------------------------------------
     def do_motion(self, served: _Served, env: p.Envelope, args: p.MotionArgs) -> dict[str, Any]:
@@ -435,6 +502,7 @@ class BridgeServer:
             "forks": [s.name for s in self._served.values() if s is not self.main],
             "loop": {"running": self.loop.running, "realtime": self.loop.realtime, "error": self.loop.error},
             "stream_frames": self.stream.frames_sent, "input_errors": served.service.input_errors[-5:],
+            "running": self._ticking.describe() if self._ticking is not None else None,
         }
         return out
 
@@ -452,7 +520,8 @@ def _classify(exc: Exception) -> tuple[str, str]:
     """The error kind of the reply, and its message."""
     if isinstance(exc, p.ProtocolError):
         return exc.kind, str(exc)
-    for cls, kind in ((BusyError, "busy"), (_RestartedError, "restarted"), (ModuleError, "module_error"),
+    for cls, kind in ((BusyError, "busy"), (_RestartedError, "restarted"), (StoppedTickError, "stopped"),
+                      (ModuleError, "module_error"),
                       (RollbackError, "rollback"), (WorldClosedError, "closed"), (DynabrainError, "refused")):
         if isinstance(exc, cls):
             return kind, str(exc)

@@ -152,7 +152,7 @@ def test_a_failing_branch_is_reported_and_the_others_return(brain):
 
 
 @pytest.mark.parametrize(("args", "kind", "message"), [
-    ({"ticks": 10, "branches": 3, "record": ["core.joint_z"]}, "refused", "no signal or parameter named 'core.joint_z"),
+    ({"ticks": 10, "branches": 3, "record": ["core.joint_z"]}, "refused", r"no signal.*'core\.joint_z'"),
     ({"ticks": 10, "branches": 3, "inputs": {"servo.target": [[0.0, 0.0]] * 10}}, "refused", r"shape \(10, 2\)"),
     ({"ticks": 10, "branches": 2, "inputs": {"servo.kp": [1.0] * 10}}, "refused", "is a parameter"),
     ({"ticks": 10, "branches": 2, "params": {"servo.nope": 1.0}}, "refused", "nope"),

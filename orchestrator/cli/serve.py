@@ -64,6 +64,13 @@ def _robots(items: list[str] | None) -> dict[str, str]:
     return out
 
 
+def _positive_seconds(value: str, option: str) -> float:
+    seconds = parse_duration_ns(value) / 1e9
+    if seconds <= 0:
+        raise DynabrainError(f"{option} must be a positive duration (e.g. 2s), got {value!r}")
+    return seconds
+
+
 def _wait_for_signal(stop: threading.Event) -> None:
     def handler(signum, frame) -> None:
         stop.set()
@@ -97,7 +104,10 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
               "--batch-workers", help="worker processes (or Ray actors) of `batch` calls (default: every core)")
           ] = None,
           batch_max_ticks: Annotated[int, typer.Option(
-              "--batch-max-ticks", help="most branches x ticks in one `batch` call")] = 1_000_000) -> None:
+              "--batch-max-ticks", help="most branches x ticks in one `batch` call")] = 1_000_000,
+          tokenless_lease: Annotated[str, typer.Option(
+              "--tokenless-lease", help="most silence a hold lasts while its brain has no liveliness token")] = "10s"
+          ) -> None:
     """Serve a world over Zenoh to remote brains (and robots) until interrupted."""
     from dynabrain.bridge.batching import BatchSettings
     from dynabrain.bridge.calls import DEFAULT_ALLOW_PYTHON
@@ -109,7 +119,8 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
     sc, world = _build(scenario)
     options = ServeOptions(name=name, stream=stream, decimate=decimate, robots=_robots(robot),
                            deadline_ns=parse_duration_ns(deadline), base_dir=sc.dir,
-                           allow_python=DEFAULT_ALLOW_PYTHON if allow_python is None else allow_python, batch=batch)
+                           allow_python=DEFAULT_ALLOW_PYTHON if allow_python is None else allow_python, batch=batch,
+                           tokenless_lease_s=_positive_seconds(tokenless_lease, "--tokenless-lease"))
     server = BridgeServer(world, settings, options)
     try:
         endpoints = server.open()
