@@ -163,3 +163,92 @@ expect:
     found = problems_of(tmp_path, bad.read_text())
     text = "\n".join(found)
     assert "core.pivot.qq" in text and "late.amplitude" in text, text
+
+
+def test_events_are_checked_against_the_structure_earlier_events_leave(tmp_path):
+    found = problems_of(tmp_path, """
+        name: t
+        world: {step: 1ms, duration: 50ms, core: mujoco}
+        scene:
+          - box: {name: aa, size: [0.1, 0.1, 0.1], mass: 1, pos: [0, 0, 0.5]}
+          - box: {name: bb, size: [0.1, 0.1, 0.1], mass: 1, pos: [1, 0, 0.5]}
+          - box: {name: cc, size: [0.1, 0.1, 0.1], mass: 1, pos: [2, 0, 0.5], joint: fixed}
+        select: [aa]
+        modules:
+          - {name: c, python: dynabrain.modules.basic:Constant, params: {value: [1.0]}}
+          - {name: g, python: dynabrain.modules.basic:Gain}
+        connect:
+          - [c.y, g.u]
+        events:
+          - {at: 1ms, remove: c}
+          - {at: 2ms, remove: c}
+          - {at: 3ms, disconnect: g.u}
+          - {at: 4ms, set: {c.value: [2.0]}}
+          - {at: 5ms, add: {name: d, python: dynabrain.modules.basic:Constant, params: {value: [1.0]}}}
+          - {at: 6ms, connect: [d.y, g.u]}
+          - {at: 7ms, connect: [d.y, g.u]}
+          - {at: 8ms, set: {g.u: [3.0]}}
+          - {at: 9ms, place: {bb: [1, 0, 1]}, no_collision: [aa], make_joint: [aa, bb]}
+          - {at: 10ms, make_joint: [aa, bb]}
+          - {at: 11ms, add: {name: d, python: dynabrain.modules.basic:Constant}}
+        """)
+    text = "\n".join(found)
+    for line, words in ((16, "remove: no module 'c' at this time"), (17, "no connection drives 'g.u' at this time"),
+                        (18, "module 'c' has been removed by this time"), (21, "g.u is already driven by d.y"),
+                        (22, "g.u is driven by d.y at this time"), (23, "'bb' is frozen at this time"),
+                        (23, "no_collision needs at least two bodies"), (24, "the joint 'joint_aa_bb' is made already"),
+                        (25, "module name 'd' is already used at this time")):
+        assert any(f"s.yaml:{line} " in p and words in p for p in found), f"{line}: {words}\n{text}"
+    assert len(found) == 9, text
+
+
+def test_a_module_parameter_that_is_wrong_leaves_the_module_checkable(tmp_path):
+    found = problems_of(tmp_path, SIGNALS.replace("{frequency: 2Hz}", "{frequency: .nan, amplitude: 1e300}") + """
+connect:
+  - [s.yy, g.u]
+""")
+    text = "\n".join(found)
+    assert "s.yaml:5 [modules[0].params.frequency]" in text and "finite" in text
+    assert "s.yaml:5 [modules[0].params.amplitude]" in text and "1e+15" in text
+    assert "no output port 'yy'" in text, text  # the module was still made, so its ports are known
+
+
+def test_overrides_given_to_build_are_checked(tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text(textwrap.dedent(SIGNALS))
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(path).build(history=-1, step="banana")
+    text = str(err.value)
+    assert "[world.history]" in text and "[world.step]" in text and "override" in text
+
+
+def test_param_convert_refuses_non_finite_values():
+    from dynabrain.orchestrator.kernel.errors import UnitError
+    from dynabrain.orchestrator.kernel.module import Param
+
+    for value in (float("nan"), float("inf"), "1e400", ".nan"):
+        with pytest.raises(UnitError):
+            Param("k", 1.0).convert(value)
+    with pytest.raises(UnitError):
+        Param("g", (0.0, 0.0, -9.81)).convert([0, 0, float("-inf")])
+    assert Param("k", 1.0).convert("2.5") == 2.5
+    unset = Param("limit", float("nan"))
+    assert unset.convert(unset.default) != unset.convert(unset.default)  # a NaN default stays the author's choice
+
+
+def test_cli_duration_override_names_itself_and_errors_print_as_markup(tmp_path):
+    from typer.testing import CliRunner
+
+    from dynabrain.orchestrator.cli import main
+    from dynabrain.orchestrator.scenario.runner import RunResult
+
+    path = tmp_path / "s.yaml"
+    path.write_text(textwrap.dedent(SIGNALS).replace("10ms", "100ms") + "expect:\n  - {at: 80ms, that: \"s.y < 2\"}\n")
+    done = CliRunner().invoke(main.app, ["run", str(path), "-q", "--duration", "20ms"])
+    assert done.exit_code == 2 and "outside the run (0 .. 20ms)" in done.output, done.output
+    done = CliRunner().invoke(main.app, ["run", str(path), "-q", "--duration", "-1s"])
+    assert done.exit_code == 2 and "--duration -1s" in done.output
+    with main.console.capture() as captured:
+        main._summary(RunResult("s", 1, 0.001, 0.1, 1_000_000, [], error="module 'g' [x] failed"), "none")
+    out = captured.get()
+    assert "run stopped: module 'g' [x] failed" in out and "[bold red]" not in out

@@ -115,7 +115,18 @@ class Param:
     dimension: str | None = None
 
     def convert(self, value: Any) -> Any:
-        """Turn a scenario value into the parameter's type, in SI units."""
+        """Turn a scenario value into the parameter's type, in SI units. A number must be finite (the
+        declared default excepted: a module author's choice)."""
+        try:
+            out = self._convert(value)
+        except OverflowError:
+            raise UnitError(f"expected a finite number, got {value!r} (too large)") from None
+        numeric = isinstance(out, float) or (isinstance(out, np.ndarray) and out.dtype.kind == "f")
+        if numeric and value is not self.default and not np.all(np.isfinite(out)):
+            raise UnitError(f"expected a finite number, got {value!r}")
+        return out
+
+    def _convert(self, value: Any) -> Any:
         default = self.default
         if self.dimension is not None and isinstance(value, str):
             return parse_quantity(value, self.dimension)

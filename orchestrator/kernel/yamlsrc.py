@@ -46,8 +46,9 @@ def read_yaml(path: str | os.PathLike[str], what: str = "file") -> YamlSource:
     except OSError as exc:
         return YamlSource.failed(file, Problem(f"cannot read {what}: {exc.strerror or exc}", file))
     if len(raw) > MAX_FILE_BYTES:
+        line = raw.count(b"\n", 0, MAX_FILE_BYTES) + 1  # where the file passes the limit
         return YamlSource.failed(file, Problem(f"{what} is larger than {MAX_FILE_BYTES // 1024} KiB "
-                                               f"(MAX_FILE_BYTES)", file))
+                                               f"(MAX_FILE_BYTES): it passes the limit on this line", file, line))
     text, problem = decode(raw, file)
     if problem is not None:
         return YamlSource.failed(file, problem)
@@ -127,7 +128,7 @@ class YamlSource:
         try:
             return self._loader.construct_object(node, deep=True)
         except (yaml.YAMLError, ValueError, OverflowError, TypeError) as exc:
-            reason = _reason(exc) if isinstance(exc, yaml.YAMLError) else str(exc)
+            reason = _reason(exc) if isinstance(exc, yaml.YAMLError) else str(exc).split(";")[0]
             self.problems.append(Problem(f"cannot read this value: {reason}", self.file, node.start_mark.line + 1,
                                          self.field(path) or None))
             return None

@@ -7,22 +7,24 @@ for the full shape.
 
 from __future__ import annotations
 
+import copy
 import functools
 import os
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..kernel.errors import DynabrainError, Problem, ScenarioError, UnitError
 from ..kernel.module import Module
-from ..kernel.plugins import resolve_core
+from ..kernel.plugins import resolve_class, resolve_core
 from ..kernel.suggest import did_you_mean
-from ..kernel.units import parse_duration_ns
+from ..kernel.units import format_duration, parse_duration_ns
 from ..kernel.world import World, as_connection
-from ..kernel.yamlsrc import Path, YamlSource
-from .events import EVENT_KINDS, EventCfg, build_event
+from ..kernel.yamlsrc import Path, YamlSource, read_yaml
+from .events import EVENT_KINDS, EventCfg, Timeline, build_event
 from .expect import Expectation, check_names
+from .limits import CORE_LIMITS, Duration, Name, PositiveDuration, Realtime, check_magnitudes, param_problem, short
 from .make import ModuleSpecError, make_module
 from .scene import parse_scene
 
@@ -32,53 +34,54 @@ class _Strict(BaseModel):
 
 
 class WorldCfg(_Strict):
-    step: str | int | float = "2ms"
+    step: PositiveDuration = "2ms"
     """Base step (a duration; ``2ms``)."""
-    duration: str | int | float = "1s"
+    duration: PositiveDuration = "1s"
     """How long `dynabrain run` simulates."""
     core: str | None = "mujoco"
     """Physics engine: ``mujoco`` or ``exudyn`` (None for a world of signal modules only)."""
-    seed: int = 0
-    history: int = 1000
+    seed: Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)] = 0
+    history: Annotated[int, Field(strict=True, ge=0)] = 1000
     """How many ticks `backtick` can go back."""
-    realtime: bool | float = False
+    realtime: Realtime = False
 
 
 class ModuleCfg(_Strict):
-    name: str
+    name: Name
     python: str | None = None
     """``package.module:Class``."""
     fmu: str | None = None
     """An FMU: a ``.fmu`` file or a source folder under ``fmus/`` (built on first use)."""
-    isolate: bool = False
+    isolate: Annotated[bool, Field(strict=True)] = False
     """Run the FMU in a process of its own (a crash is reported, not fatal)."""
     call_timeout: str | int | float | None = None
     """With ``isolate``: how long one FMU call may take before its process is killed (default 30 s)."""
     params: dict[str, Any] = {}
-    period: str | int | float | None = None
+    period: PositiveDuration | None = None
     targets: list[str] = []
     connect: list[list[Any]] = []
 
 
 class ExpectCfg(_Strict):
     that: str
-    at: str | int | float | None = None
+    at: Duration | None = None
     """When to check (a duration); default: the end of the run."""
-    during: list[str | int | float] | None = None
+    during: Annotated[list[Duration], Field(min_length=2, max_length=2)] | None = None
     """``[from, to]``: check at every tick in between."""
     name: str | None = None
 
 
 class LogCfg(_Strict):
     mcap: str | None = None
-    decimate: int = 1
+    decimate: Annotated[int, Field(strict=True, ge=1)] = 1
 
 
 class ScenarioModel(_Strict):
-    name: str
+    name: Name
     description: str = ""
     world: WorldCfg = WorldCfg()
-    scene: list[dict[str, Any]] | dict[str, Any] = []
+    scene: Any = []
+    """A list of shapes or ``{model: file}``, checked by `parse_scene`."""
     core: dict[str, Any] = {}
     """Parameters of the physics core (``friction``, ``restitution``, ``gravity``, ``substeps``)."""
     select: list[str] | None = None
@@ -98,6 +101,10 @@ class Scenario:
     model: ScenarioModel
     duration_ns: int = 0
     expectations: list[Expectation] = field(default_factory=list)
+    problems: list[Problem] = field(default_factory=list)
+    """Problems found while reading the file (its shape); `build` reports them with its own."""
+    invalid: frozenset[Path] = frozenset()
+    """Items (``("modules", 2)``) whose shape is wrong: `build` leaves them out."""
 
     @property
     def dir(self) -> str:
@@ -108,9 +115,10 @@ class Scenario:
         self.expectations = []
         builder = _Builder(self)
         world = builder.build(overrides)
-        if builder.problems:
+        problems = _in_order([*self.problems, *builder.problems])
+        if problems:
             world.close()
-            raise ScenarioError(builder.problems)
+            raise ScenarioError(problems)
         world.module_factory = functools.partial(make_module, base_dir=self.dir)
         world.rebuild = functools.partial(load_world, os.path.abspath(self.path), **overrides)
         return world
@@ -125,31 +133,21 @@ class Scenario:
 
 
 def load_scenario(path: str | os.PathLike[str]) -> Scenario:
-    """Read and validate the shape of a scenario file (the rest is checked by `Scenario.build`)."""
+    """Read and validate the shape of a scenario file (the rest is checked by `Scenario.build`). A
+    file whose shape is wrong is built all the same, leaving out what is wrong, so that the
+    `ScenarioError` lists every problem of the file, not only the first kind found."""
     path = os.fspath(path)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise ScenarioError([Problem(f"cannot read the scenario: {exc.strerror}", path)]) from None
-    source = YamlSource(text, path)
-    if source.problems:
+    source = read_yaml(path, "the scenario")
+    if source.problems and source.data is None:
         raise ScenarioError(source.problems)
     if not isinstance(source.data, dict):
-        raise ScenarioError([Problem("a scenario is a mapping (name:, world:, scene:, ...)", path, 1)])
-    problems = list(source.problems)
-    try:
-        model = ScenarioModel.model_validate(source.data)
-    except ValidationError as exc:
-        problems += [_pydantic_problem(source, err) for err in exc.errors()]
-        raise ScenarioError(problems) from None
-    scenario = Scenario(path, source, model)
-    try:
-        scenario.duration_ns = parse_duration_ns(model.world.duration)
-    except UnitError as exc:
-        problems.append(source.problem(("world", "duration"), str(exc)))
-    if problems:
-        raise ScenarioError(problems)
+        shape = Problem("a scenario is a mapping (name:, world:, scene:, ...)", path, 1)
+        raise ScenarioError([*source.problems, shape])
+    model, problems, invalid = _validate(source)
+    scenario = Scenario(path, source, model, problems=[*source.problems, *problems], invalid=frozenset(invalid))
+    scenario.duration_ns = parse_duration_ns(model.world.duration)
+    if scenario.problems:
+        scenario.build().close()  # raises, with the problems of the shape and those the build finds
     return scenario
 
 
@@ -159,22 +157,117 @@ def load_world(path: str | os.PathLike[str], **overrides: Any) -> World:
     return load_scenario(path).build(**overrides)
 
 
+def _in_order(problems: list[Problem]) -> list[Problem]:
+    """Each problem once, in the order of the file's lines (problems without a line first)."""
+    unique = list(dict.fromkeys(problems))
+    return sorted(unique, key=lambda p: p.line or 0)
+
+
+# -- the shape: pydantic, every problem, and a model built from what is left ------------------------------
 _MODELS = {"": ScenarioModel, "world": WorldCfg, "modules": ModuleCfg, "expect": ExpectCfg, "log": LogCfg,
            "events": EventCfg}
+_ITEMS = {"modules": ModuleCfg, "events": EventCfg, "expect": ExpectCfg, "connect": None}
+"""Sections that are lists of items: a wrong item is left out (`Scenario.invalid`), the rest is built."""
+_PLACEHOLDER: dict[str, Any] = {"modules": {"name": "?"}, "events": {"at": 0}, "expect": {"that": "True"},
+                                "connect": []}
 
 
-def _pydantic_problem(source: YamlSource, err: dict[str, Any]) -> Problem:
-    loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and "[" in p))
-    if err["type"] == "extra_forbidden":
+def _validate(source: YamlSource) -> tuple[ScenarioModel, list[Problem], set[Path]]:
+    """The scenario's model, every problem of its shape, and the items left out. What is wrong is
+    taken out of a copy of the data (a key dropped, so its default applies, or an item replaced by
+    a placeholder that the build leaves out) until the rest validates."""
+    data = source.data
+    problems: list[Problem] = []
+    invalid: set[Path] = set()
+    for _ in range(20):
+        try:
+            return ScenarioModel.model_validate(data), problems, invalid
+        except ValidationError as exc:
+            if data is source.data:
+                data = copy.deepcopy(data)
+            groups: dict[Path, list[Any]] = {}
+            for err in exc.errors():
+                groups.setdefault(_existing(data, tuple(err["loc"])), []).append(err)
+            unreadable = {p.field for p in source.problems}
+            for loc, errors in groups.items():
+                if source.field(loc) not in unreadable:  # (a value the reader could not make is None here)
+                    problems.append(_pydantic_problem(source, data, loc, errors))
+            for loc, errors in groups.items():
+                _take_out(data, loc, errors, invalid)
+    raise ScenarioError(problems)  # not reached: every round takes something out
+
+
+def _existing(data: Any, loc: tuple[Any, ...]) -> Path:
+    """The longest start of pydantic's ``loc`` that is a path in ``data`` (pydantic adds the names of
+    union members and validators, and a missing key is not in the data)."""
+    out: list[str | int] = []
+    for part in loc:
+        in_dict = isinstance(data, dict) and isinstance(part, str) and part in data
+        if not (in_dict or (isinstance(data, list) and isinstance(part, int) and 0 <= part < len(data))):
+            break
+        data = data[part]
+        out.append(part)
+    return tuple(out)
+
+
+def _at(data: Any, path: Path) -> Any:
+    for part in path:
+        data = data[part]
+    return data
+
+
+def _pydantic_problem(source: YamlSource | _Shifted, data: Any, loc: Path, errors: list[Any],
+                      model: type[BaseModel] | None = None) -> Problem:
+    """One problem for pydantic's ``errors`` at ``loc`` (several, for a value no member of a union takes).
+    ``model``: the model that holds an unknown key, when its section's name does not say."""
+    extra = [e for e in errors if e["type"] == "extra_forbidden"]
+    if extra:
         section = next((p for p in reversed(loc[:-1]) if isinstance(p, str)), "")
-        model = _MODELS.get(section, ScenarioModel if len(loc) == 1 else None)
+        if model is None:
+            model = _MODELS.get(section, ScenarioModel if len(loc) == 1 else None)
         known = list(model.model_fields) if model is not None else []
         if section == "events":
-            known += list(EVENT_KINDS)
-        return source.problem(loc, f"unknown key {loc[-1]!r}" + did_you_mean(str(loc[-1]), known)
+            known += [k for k in EVENT_KINDS if k not in known]
+        return source.problem(loc, f"unknown key {short(loc[-1])}" + did_you_mean(str(loc[-1]), known)
                               + (f"; valid keys: {', '.join(known)}" if known else ""))
-    message = err["msg"].removeprefix("Value error, ")
-    return source.problem(loc, message)
+    missing = [str(e["loc"][len(loc)]) for e in errors if e["type"] == "missing" and len(e["loc"]) > len(loc)]
+    if missing:
+        return source.problem(loc, "missing " + ", ".join(repr(m) for m in dict.fromkeys(missing)))
+    messages = list(dict.fromkeys(e["msg"].removeprefix("Value error, ") for e in errors))
+    value = _at(data, loc)
+    own = all(e["type"] == "value_error" for e in errors)  # our validators' messages say what they got
+    got = "" if own or any(short(value) in m for m in messages) else f" (got {short(value)})"
+    return source.problem(loc, " or ".join(messages) + got)
+
+
+def _take_out(data: Any, loc: Path, errors: list[Any], invalid: set[Path]) -> None:
+    """Take what is wrong at ``loc`` out of ``data`` (see `_validate`)."""
+    if _existing(data, loc) != loc or any(loc[:n] in invalid for n in range(1, len(loc) + 1)):
+        return  # taken out already, with what held it
+    if len(loc) >= 2 and loc[0] in _ITEMS and isinstance(loc[1], int):
+        item = _ITEMS[loc[0]]
+        key = loc[2] if len(loc) >= 3 else None
+        optional = item is not None and isinstance(key, str) and (
+            key not in item.model_fields or not item.model_fields[key].is_required())
+        if optional and loc[0] != "events":  # drop the key, keep checking the rest of the item
+            del data[loc[0]][loc[1]][key]
+        else:
+            data[loc[0]][loc[1]] = copy.deepcopy(_PLACEHOLDER[loc[0]])
+            invalid.add(loc[:2])
+        return
+    if not loc:
+        for err in errors:  # a required key missing at the top
+            if err["type"] == "missing" and len(err["loc"]) == 1:
+                data[err["loc"][0]] = "?"
+        return
+    parent = _at(data, loc[:-1])
+    if isinstance(parent, dict):
+        if loc == ("name",):
+            parent["name"] = "?"
+        else:
+            del parent[loc[-1]]
+    else:  # an element of a list that is not a section's item (select: [...]): drop the whole list
+        _take_out(data, loc[:-1], [], invalid)
 
 
 class _Builder:
@@ -186,20 +279,29 @@ class _Builder:
         self.problems: list[Problem] = []
         self.later_modules: set[str] = set()
         """Modules the scenario's events add (their names may be used before they exist)."""
+        self.timeline = Timeline(set(), {})
+        """The structure as the events checked so far leave it."""
 
     def report(self, path: Path, message: str) -> None:
         self.problems.append(self.src.problem(path, message))
 
+    def report_validation(self, path: Path, exc: ValidationError, model: type[BaseModel]) -> None:
+        """Report the pydantic errors of a part validated late (an event's ``add``, a ``model``), under ``path``."""
+        data = _at(self.src.data, path)
+        groups: dict[Path, list[Any]] = {}
+        for err in exc.errors():
+            groups.setdefault(_existing(data, tuple(err["loc"])), []).append(err)
+        for loc, errors in groups.items():
+            self.problems.append(_pydantic_problem(_Shifted(self.src, path), data, loc, errors,
+                                                   model if len(loc) == 1 else None))
+
     def build(self, overrides: dict[str, Any]) -> World:
         m = self.sc.model
-        cfg = m.world.model_copy(update=overrides)
-        try:
-            step = parse_duration_ns(cfg.step)
-        except UnitError as exc:
-            self.report(("world", "step"), str(exc))
-            step = 2_000_000
+        cfg = self._world_cfg(overrides)
+        step = parse_duration_ns(cfg.step)
         if self.sc.duration_ns % step:
-            self.report(("world", "duration"), f"duration is not a whole number of {cfg.step} steps")
+            self.report(("world", "duration"), f"the duration ({format_duration(self.sc.duration_ns)}) is not a "
+                                               f"whole number of {cfg.step} steps")
         world = World(m.name, step=step, seed=cfg.seed, history=cfg.history)
         self._add_core(world, cfg)
         self._add_modules(world)
@@ -208,6 +310,19 @@ class _Builder:
         self._events(world)
         self._expectations(world)
         return world
+
+    def _world_cfg(self, overrides: dict[str, Any]) -> WorldCfg:
+        """``world:`` with ``overrides`` (given to `build`, not in the file) checked like the file's keys."""
+        if not overrides:
+            return self.sc.model.world
+        try:
+            return WorldCfg.model_validate({**self.sc.model.world.model_dump(exclude_unset=True), **overrides})
+        except ValidationError as exc:
+            for err in exc.errors():
+                self.problems.append(Problem(f"{err['msg'].removeprefix('Value error, ')} (an override given to "
+                                             f"build: {short(overrides)})", self.src.file, None,
+                                             "world." + ".".join(map(str, err["loc"][:1]))))
+            return self.sc.model.world
 
     def _add_core(self, world: World, cfg: WorldCfg) -> None:
         m = self.sc.model
@@ -222,16 +337,34 @@ class _Builder:
             return
         scene, scene_problems = parse_scene(m.scene, self.src, self.sc.dir, cfg.core)
         self.problems += scene_problems
+        params = self._core_params(cls)
         if scene_problems:
             return
         try:
-            core = cls("core", scene, scenario_dir=self.sc.dir, **m.core)
+            core = cls("core", scene, scenario_dir=self.sc.dir, **params)
             world.add_module(core)
         except DynabrainError as exc:
             self.report(("core",) if "parameter" in str(exc) else ("scene",), str(exc))
+        except Exception as exc:  # the engine's own library refusing the scene (a model file it cannot read)
+            self.report(("scene",), f"the {cfg.core} core cannot load the scene: {type(exc).__name__}: {exc}")
+
+    def _core_params(self, cls: type) -> dict[str, Any]:
+        """The ``core:`` parameters whose values are good (the others are reported and left out)."""
+        specs = cls.param_specs()
+        good = {}
+        for key, value in self.sc.model.core.items():
+            if key in specs:
+                problem = param_problem(specs[key], value, CORE_LIMITS.get(key))
+                if problem:
+                    self.report(("core", key), f"core parameter {key!r}: {problem}")
+                    continue
+            good[key] = value
+        return good
 
     def _add_modules(self, world: World) -> None:
         for i, cfg in enumerate(self.sc.model.modules):
+            if ("modules", i) in self.sc.invalid:
+                continue
             module = self.make_module(cfg, ("modules", i))
             if module is None:
                 continue
@@ -243,15 +376,48 @@ class _Builder:
             self._connect(world, cfg.connect, ("modules", i, "connect"))
 
     def make_module(self, cfg: ModuleCfg, path: Path) -> Module | None:
-        """The module ``cfg`` describes (see `make.make_module`), or None with the problem reported."""
+        """The module ``cfg`` describes (see `make.make_module`), or None with the problem reported. A
+        parameter whose value is wrong (type, unit, finiteness, `limits.MAX_MAGNITUDE`) is reported and
+        left out, so that the module is still made and what uses it is still checked."""
+        params = self._good_params(cfg, path)
         try:
-            return make_module(cfg, base_dir=self.sc.dir)
+            module = make_module(cfg if params is None else cfg.model_copy(update={"params": params}),
+                                 base_dir=self.sc.dir)
         except ModuleSpecError as exc:
             self.report(path if exc.field is None else (*path, exc.field), str(exc))
             return None
+        for key in cfg.params if params is None else ():  # (an FMU's parameters are known once it is made)
+            try:
+                check_magnitudes(module.params.get(key), f"parameter {key!r}")
+            except UnitError as exc:
+                self.report((*path, "params", key), f"module {cfg.name!r}: {exc}")
+        return module
+
+    def _good_params(self, cfg: ModuleCfg, path: Path) -> dict[str, Any] | None:
+        """``cfg.params`` without the values its class's parameters refuse, each reported; None when the
+        class declares its parameters only once made (an FMU) or cannot be found (`make_module` says why)."""
+        if cfg.python is None or cfg.fmu is not None:
+            return None
+        try:
+            cls = resolve_class(cfg.python)
+            specs = cls.param_specs() if isinstance(cls, type) and issubclass(cls, Module) else None
+        except Exception:  # make_module reports a class it cannot find or use
+            return None
+        if not isinstance(specs, dict):
+            return None
+        good = {}
+        for key, value in cfg.params.items():
+            problem = param_problem(specs[key], value) if key in specs else None
+            if problem:
+                self.report((*path, "params", key), f"module {cfg.name!r}, parameter {key!r}: {problem}")
+            else:
+                good[key] = value
+        return good
 
     def _connect(self, world: World, items: list[list[Any]], path: Path) -> None:
         for j, item in enumerate(items):
+            if (*path, j) in self.sc.invalid:
+                continue
             try:
                 conn = as_connection(item)
                 world.connect(conn.src, conn.dst, delay=conn.delay)
@@ -267,9 +433,9 @@ class _Builder:
             self.report(("select",), str(exc))
 
     def _events(self, world: World) -> None:
-        events = sorted(enumerate(self.sc.model.events), key=lambda item: parse_duration_ns(item[1].at)
-                        if _is_duration(item[1].at) else 0)
-        for i, ev in events:
+        self.timeline = Timeline.of(world)
+        valid = [(i, ev) for i, ev in enumerate(self.sc.model.events) if ("events", i) not in self.sc.invalid]
+        for i, ev in sorted(valid, key=lambda item: parse_duration_ns(item[1].at)):
             path: Path = ("events", i)
             try:
                 action, label = build_event(ev, world, self, path)
@@ -281,18 +447,23 @@ class _Builder:
         end = self.sc.duration_ns // world.dt_ns
         for i, cfg in enumerate(self.sc.model.expect):
             path: Path = ("expect", i)
+            if path in self.sc.invalid:
+                continue
             try:
                 if cfg.during is not None:
-                    if len(cfg.during) != 2:
-                        raise UnitError("during is [from, to]")
                     start, stop = (parse_duration_ns(v) // world.dt_ns for v in cfg.during)
                 else:
                     start = stop = end if cfg.at is None else parse_duration_ns(cfg.at) // world.dt_ns
                 if not 0 <= start <= stop <= end:
-                    raise UnitError(f"expectation time is outside the run (0 .. {self.sc.model.world.duration})")
+                    raise UnitError(f"expectation time is outside the run (0 .. "
+                                    f"{format_duration(self.sc.duration_ns)})")
+            except DynabrainError as exc:
+                self.report((*path, "during" if cfg.during is not None else "at"), str(exc))
+                continue
+            try:
                 exp = Expectation(cfg.that, start, stop, cfg.name or cfg.that, self.src.line(path))
             except DynabrainError as exc:
-                self.report(path, str(exc))
+                self.report((*path, "that"), str(exc))
                 continue
             core_failed = self.sc.model.world.core is not None and world.core is None
             for message in () if core_failed else check_names(exp, world, self.later_modules):
@@ -300,12 +471,14 @@ class _Builder:
             self.sc.expectations.append(exp)
 
 
-def _is_duration(value: Any) -> bool:
-    try:
-        parse_duration_ns(value)
-    except DynabrainError:
-        return False
-    return True
+class _Shifted:
+    """A `YamlSource` seen from inside one of its values: paths are relative to ``base``."""
+
+    def __init__(self, source: YamlSource, base: Path):
+        self.source, self.base = source, base
+
+    def problem(self, path: Path, message: str) -> Problem:
+        return self.source.problem((*self.base, *path), message)
 
 
 def _period(value: Any) -> int | None:

@@ -29,6 +29,8 @@ from ..kernel.errors import DynabrainError, Problem, UnitError
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import parse_quantity
 from ..kernel.yamlsrc import Path, YamlSource
+from . import limits
+from .limits import bounded, short
 
 _BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction")
 _JOINT_KEYS = ("name", "axis", "anchor", "range", "damping")
@@ -54,6 +56,9 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
         if not os.path.exists(path):
             problems.append(src.problem(("scene", "model"), f"model file {model!r} not found (looked in {base_dir})"))
         return SceneSpec(model=path), problems
+    if data is not None and not isinstance(data, list):
+        problems.append(src.problem(("scene",), f"a scene is a list of shapes or {{model: file}}, got {short(data)}"))
+        return SceneSpec(), problems
     bodies: list[BodySpec] = []
     names: set[str] = set()
     for shape, fields, path in _items(data or [], src, problems):
@@ -64,7 +69,7 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
         try:
             parse = _cable if shape in FLEX_SHAPES else _body
             body = parse(shape, fields or {}, src, (*path, shape), problems)
-        except (DynabrainError, ValueError, TypeError) as exc:
+        except (DynabrainError, ValueError, TypeError, ArithmeticError) as exc:
             problems.append(src.problem((*path, shape), str(exc)))
             continue
         if body is None:
@@ -98,14 +103,21 @@ def _items(data: list[Any], src: YamlSource, problems: list[Problem]):
             continue
         try:
             yield from _grid(fields, path)
-        except (DynabrainError, ValueError, TypeError, KeyError) as exc:
+        except (DynabrainError, ValueError, TypeError, KeyError, AttributeError, ArithmeticError) as exc:
             problems.append(src.problem((*path, "grid"), f"a grid is {{of: {{shape: {{...}}}}, count: [nx, ny], "
                                         f"spacing: [dx, dy]}}: {exc}"))
 
 
 def _grid(fields: dict[str, Any], path: Path):
     (shape, base), = fields["of"].items()
-    nx, ny = (int(c) for c in fields["count"])
+    if not isinstance(base, dict):
+        raise UnitError(f"{shape} needs a mapping of fields")
+    count = fields["count"]
+    if not isinstance(count, list) or len(count) != 2 or not all(_whole(c) and c >= 1 for c in count):
+        raise UnitError(f"count is [nx, ny], two whole numbers from 1, got {short(count)}")
+    nx, ny = count
+    if nx * ny > limits.MAX_GRID:
+        raise UnitError(f"{nx} x {ny} copies: a grid makes at most {limits.MAX_GRID} (MAX_GRID)")
     dx, dy = _vector(fields["spacing"], 2, "length")
     x0, y0, z0 = _vector(base.get("pos", [0, 0, 0]), 3, "length")
     for ix in range(nx):
@@ -133,7 +145,7 @@ def _field_reader(shape: str, f: dict[str, Any], keys: Sequence[str], src: YamlS
             return default
         try:
             return parse(f[key])
-        except (DynabrainError, ValueError, TypeError) as exc:
+        except (DynabrainError, ValueError, TypeError, ArithmeticError) as exc:
             problems.append(src.problem((*path, key), str(exc)))
             return default
 
@@ -145,9 +157,12 @@ def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: 
     field = _field_reader(shape, f, _BODY_KEYS, src, path, problems, required=False)
 
     name = f.get("name", "floor" if shape == "plane" else None)
-    if not isinstance(name, str) or not name:
-        problems.append(src.problem(path, f"a {shape} needs a name"))
+    if not _good_name(name):
+        problems.append(src.problem((*path, "name") if "name" in f else path, _name_problem(shape, name)))
         name = "?"
+    parent = f.get("parent")
+    if parent is not None and not isinstance(parent, str):
+        problems.append(src.problem((*path, "parent"), f"parent is a body's name, got {short(parent)}"))
     size = field("size", lambda v: _vector(v, None, "length"), ())
     if len(size) not in _SIZE_LEN[shape]:
         problems.append(src.problem((*path, "size"), f"a {shape} has size of length "
@@ -163,9 +178,9 @@ def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: 
     body = BodySpec(
         name=name, shape=shape, size=tuple(size),
         pos=field("pos", lambda v: _vector(v, 3, "length"), (0.0, 0.0, 0.0)),
-        quat=quat, mass=field("mass", lambda v: _positive(parse_quantity(v, "mass"))),
-        color=field("color", _color, COLORS["grey"]), joint=joint, parent=f.get("parent"),
-        friction=field("friction", lambda v: _positive(float(v))), line=src.line(path),
+        quat=quat, mass=field("mass", _mass),
+        color=field("color", _color, COLORS["grey"]), joint=joint, parent=parent,
+        friction=field("friction", _friction), line=src.line(path),
     )
     return body if len(problems) == before else None
 
@@ -176,8 +191,8 @@ def _cable(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems:
     field = _field_reader(shape, f, _CABLE_KEYS, src, path, problems, required=True)
 
     name = f.get("name")
-    if not isinstance(name, str) or not name:
-        problems.append(src.problem(path, f"a {shape} needs a name"))
+    if not _good_name(name):
+        problems.append(src.problem((*path, "name") if "name" in f else path, _name_problem(shape, name)))
     start = field("from", lambda v: _vector(v, 3, "length"))
     end = field("to", lambda v: _vector(v, 3, "length"))
     if start is not None and end is not None and start == end:
@@ -185,17 +200,18 @@ def _cable(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems:
     cable = CableSpec(
         end=end or (0.0, 0.0, 0.0),
         segments=field("segments", _segments, 8),
-        axial_stiffness=field("stiffness", lambda v: _positive(parse_quantity(v, "force")), 1.0e4),
-        bending_stiffness=field("bending", lambda v: _positive(parse_quantity(v)), 1.0e-3),
-        damping=field("damping", lambda v: _not_negative(parse_quantity(v, "time")), 0.0),
+        axial_stiffness=field("stiffness", _above_zero("force", "stiffness", limits.MAX_MAGNITUDE), 1.0e4),
+        bending_stiffness=field("bending", _above_zero(None, "bending", limits.MAX_MAGNITUDE), 1.0e-3),
+        damping=field("damping", lambda v: _quantity(v, "time", "damping", 0.0, limits.MAX_DURATION_S), 0.0),
         attach=field("attach", _attach, (None, None)),
     )
     body = BodySpec(
         name=name if isinstance(name, str) else "?", shape=shape,
-        size=(field("radius", lambda v: _positive(parse_quantity(v, "length")), 0.005),),
-        pos=start or (0.0, 0.0, 0.0), mass=field("mass", lambda v: _positive(parse_quantity(v, "mass")), 0.0) or None,
-        color=field("color", _color, COLORS["brown"]), friction=field("friction", lambda v: _positive(float(v)), 0.0)
-        or None, line=src.line(path), cable=cable,
+        size=(field("radius", _above_zero("length", "radius", limits.MAX_LENGTH_M), 0.005),),
+        pos=start or (0.0, 0.0, 0.0),
+        mass=field("mass", _mass, 0.0) or None,
+        color=field("color", _color, COLORS["brown"]), friction=field("friction", _friction, 0.0) or None,
+        line=src.line(path), cable=cable,
     )
     return body if len(problems) == before else None
 
@@ -212,29 +228,67 @@ def _attach(value: Any) -> tuple[str | None, str | None]:
     return (value[0], value[1])
 
 
-def _not_negative(x: float) -> float:
-    if x < 0:
-        raise UnitError(f"must not be negative, got {x}")
+def _whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _good_name(name: Any) -> bool:
+    return isinstance(name, str) and bool(name.strip()) and len(name) <= limits.MAX_NAME
+
+
+def _name_problem(shape: str, name: Any) -> str:
+    if isinstance(name, str) and len(name) > limits.MAX_NAME:
+        return f"a name is at most {limits.MAX_NAME} characters (MAX_NAME), got {len(name)}"
+    return f"a {shape} needs a name (a string), got {short(name)}"
+
+
+def _quantity(value: Any, dimension: str | None, what: str, low: float, high: float, *, above: bool = False) -> float:
+    """``value`` in SI units, finite, within [low, high] (above ``low`` with ``above``)."""
+    try:
+        x = parse_quantity(value, dimension)
+    except OverflowError:
+        raise UnitError(f"{what} {short(value)} is too large") from None
+    bounded(x, what, None, high)
+    if x < low or (above and x == low):
+        raise UnitError(f"{what} must be {'above' if above else 'at least'} {low:g}, got {x:g}")
     return x
 
 
-def _positive(x: float) -> float:
-    if not x > 0:
-        raise UnitError(f"must be positive, got {x}")
-    return x
+def _above_zero(dimension: str | None, what: str, high: float):
+    """A parser of a quantity above 0 and at most ``high``."""
+    return lambda value: _quantity(value, dimension, what, 0.0, high, above=True)
+
+
+_friction = _above_zero(None, "friction", limits.MAX_FRICTION)
+_mass = _above_zero("mass", "mass", limits.MAX_MASS_KG)
 
 
 def _vector(value: Any, n: int | None, dimension: str | None = None, default_unit: str | None = None) -> tuple:
+    """A list of ``n`` quantities in SI units, each finite and within `MAX_LENGTH_M` (lengths) or
+    `MAX_MAGNITUDE` (anything else)."""
     if not isinstance(value, (list, tuple)):
-        raise UnitError(f"expected a list of {n or 'some'} numbers, got {value!r}")
+        raise UnitError(f"expected a list of {n or 'some'} numbers, got {short(value)}")
     if n is not None and len(value) != n:
         raise UnitError(f"expected {n} numbers, got {len(value)}")
+    limit = limits.MAX_LENGTH_M if dimension == "length" else limits.MAX_MAGNITUDE
     out = []
     for v in value:
-        if default_unit and not isinstance(v, str):
+        if default_unit and not isinstance(v, (str, bool)):
             v = f"{v}{default_unit}"
-        out.append(parse_quantity(v, dimension))
+        out.append(_quantity(v, dimension, dimension or "a number", -limit, limit))
     return tuple(out)
+
+
+def parse_pose(value: Any) -> tuple[tuple, tuple | None]:
+    """A pose as a scenario writes it (``[x, y, z]`` or ``{pos: [x, y, z], quat: [w, x, y, z]}``), as
+    (pos, unit quat or None), in SI units; a `UnitError` says what is wrong."""
+    if isinstance(value, dict):
+        unknown = [k for k in value if k not in ("pos", "quat")]
+        if unknown or "pos" not in value:
+            raise UnitError(f"a pose is [x, y, z] or {{pos: [x, y, z], quat: [w, x, y, z]}}, got {short(value)}")
+        quat = value.get("quat")
+        return _vector(value["pos"], 3, "length"), None if quat is None else _unit_quat(_vector(quat, 4))
+    return _vector(value, 3, "length"), None
 
 
 def _unit_quat(q: tuple) -> tuple:
@@ -285,17 +339,22 @@ def _joint(value: Any) -> JointSpec:
     if kind not in ("hinge", "slide"):
         raise UnitError(f"unknown joint kind {kind!r}" + did_you_mean(kind, ("hinge", "slide")))
     fields = fields or {}
+    if not isinstance(fields, dict):
+        raise UnitError(f"a {kind} joint takes a mapping of fields ({', '.join(_JOINT_KEYS)})")
     for key in fields:
         if key not in _JOINT_KEYS:
             raise UnitError(f"unknown joint key {key!r}" + did_you_mean(key, _JOINT_KEYS))
     rng = fields.get("range")
     dim = "angle" if kind == "hinge" else "length"
+    name = fields.get("name")
+    if name is not None and not _good_name(name):
+        raise UnitError(_name_problem(f"{kind} joint", name))
     return JointSpec(
-        kind=kind, name=fields.get("name"),
+        kind=kind, name=name,
         axis=_axis(fields.get("axis", [0, 0, 1])),
         anchor=_vector(fields.get("anchor", [0, 0, 0]), 3, "length"),
         range=None if rng is None else _vector(rng, 2, dim, default_unit="deg" if kind == "hinge" else None),
-        damping=float(fields.get("damping", 0.0)),
+        damping=_quantity(fields.get("damping", 0.0), None, "damping", 0.0, limits.MAX_MAGNITUDE),
     )
 
 

@@ -1,0 +1,137 @@
+"""The limits a scenario's values are held to: each value outside them is refused before t=0, with
+its file:line, instead of failing (or running away) during the run. The README's "Scenario files"
+section lists them. Every number must be finite (NaN and infinity are refused everywhere); the
+constants below bound them further, in SI units. The pydantic field types at the end (`Duration`,
+`PositiveDuration`, `Name`, `Realtime`) apply them where the scenario's shape is checked.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import PlainValidator
+
+from ..kernel.errors import UnitError
+from ..kernel.units import NS_PER_S, parse_duration_ns
+
+MAX_NAME = 200
+"""The longest name (of the scenario, a body, a module), in characters."""
+MAX_DURATION_S = 1e6
+"""The longest duration: a run, a step, an event's or an expectation's time (about 11.6 days)."""
+MAX_MASS_KG = 1e6
+"""The heaviest body (1000 t)."""
+MAX_LENGTH_M = 1e5
+"""The largest size or coordinate (100 km)."""
+MAX_FRICTION = 100.0
+"""The largest friction coefficient."""
+MAX_GRAVITY = 1000.0
+"""The largest gravity component, in m/s^2 (about 100 g)."""
+MAX_SUBSTEPS = 10_000
+"""The most physics steps per module step."""
+MAX_MAGNITUDE = 1e15
+"""The largest magnitude of any other number: module parameters, stiffness, damping, event values."""
+MAX_GRID = 10_000
+"""The most copies one ``grid`` makes."""
+
+CORE_LIMITS: dict[str, tuple[float, float]] = {
+    "friction": (0.0, MAX_FRICTION), "restitution": (0.0, 1.0), "gravity": (-MAX_GRAVITY, MAX_GRAVITY),
+    "substeps": (0, MAX_SUBSTEPS),
+}
+"""Ranges of the physics core's parameters (``core:`` and ``set: {core.<name>: ...}``), both ends included."""
+
+
+def bounded(value: float, what: str, low: float | None = None, high: float | None = None) -> float:
+    """``value`` when it is finite and within [low, high]; else a `UnitError` naming ``what`` and the limit."""
+    if not math.isfinite(value):
+        raise UnitError(f"{what} must be a finite number, got {value}")
+    if low is not None and value < low:
+        raise UnitError(f"{what} must be at least {low:g}, got {value:g}")
+    if high is not None and value > high:
+        raise UnitError(f"{what} must be at most {high:g}, got {value:g}")
+    return value
+
+
+def check_magnitudes(value: Any, what: str, limit: float = MAX_MAGNITUDE) -> None:
+    """Raise a `UnitError` when a number in ``value`` (a number, an array, a list or mapping of them)
+    is not finite or beyond ±``limit``. Other values (strings, flags) pass."""
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return
+    if isinstance(value, (int, np.integer)):
+        if abs(int(value)) > limit:
+            raise UnitError(f"{what} must be within ±{limit:g}, got a whole number of {int(value).bit_length()} bits")
+    elif isinstance(value, (float, np.floating)):
+        bounded(float(value), what, -limit, limit)
+    elif isinstance(value, np.ndarray) and value.dtype.kind in "biuf":
+        if value.size and not (np.all(np.isfinite(value)) and np.max(np.abs(value)) <= limit):
+            bad = value[~(np.isfinite(value) & (np.abs(value) <= limit))].flat[0]
+            bounded(float(bad), what, -limit, limit)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            check_magnitudes(item, what, limit)
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            check_magnitudes(item, f"{what}.{key}", limit)
+
+
+def param_problem(spec: Any, value: Any, limits: tuple[float, float] | None = None) -> str | None:
+    """What is wrong with ``value`` for the parameter ``spec`` (a `Param`: its type and unit), its
+    finiteness and its range (``limits``, else `MAX_MAGNITUDE`), or None."""
+    try:
+        converted = spec.convert(value)
+        if limits is None:
+            check_magnitudes(converted, "the value")
+        elif isinstance(converted, (int, float, np.ndarray, np.number)) and not isinstance(converted, bool):
+            for x in np.ravel(converted):
+                bounded(float(x), "the value", *limits)
+    except (UnitError, TypeError, ValueError) as exc:
+        return str(exc)
+    return None
+
+
+def short(value: Any, limit: int = 60) -> str:
+    """``repr(value)`` cut to ``limit`` characters, for a message about a value that may be huge."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+# -- pydantic field types that hold these limits ----------------------------------------------------------
+def _duration(*, positive: bool) -> PlainValidator:
+    def check(value: Any) -> Any:
+        if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+            raise ValueError(f"expected a duration (2ms, 1.5s, or seconds as a number), got {short(value)}")
+        ns = parse_duration_ns(value)
+        if ns < 0 or (positive and ns == 0):
+            raise ValueError(f"a duration must be {'positive' if positive else 'zero or more'}, got {short(value)}")
+        if ns > MAX_DURATION_S * NS_PER_S:
+            raise ValueError(f"{short(value)} is longer than {MAX_DURATION_S:g} s (MAX_DURATION_S)")
+        return value
+
+    return PlainValidator(check)
+
+
+def _name(value: Any) -> str:
+    if not isinstance(value, str) or not value.strip():
+        raise ValueError(f"a name is a non-empty string, got {short(value)}")
+    if len(value) > MAX_NAME:
+        raise ValueError(f"a name is at most {MAX_NAME} characters (MAX_NAME), got {len(value)}")
+    return value
+
+
+def _realtime(value: Any) -> bool | float:
+    if isinstance(value, bool):
+        return value
+    if not isinstance(value, (int, float)):
+        raise ValueError(f"realtime is true, false or a speed factor (0.5: half speed), got {short(value)}")
+    return bounded(float(value), "the real-time factor", 1e-6, 1e6)
+
+
+Duration = Annotated[str | int | float, _duration(positive=False)]
+"""A time from the start: ``2ms``, ``1.5s``, seconds as a number; at least 0, at most `MAX_DURATION_S`."""
+PositiveDuration = Annotated[str | int | float, _duration(positive=True)]
+"""A duration above 0 (a step, a period, the length of a run), at most `MAX_DURATION_S`."""
+Name = Annotated[str, PlainValidator(_name)]
+"""A name: a non-empty string of at most `MAX_NAME` characters."""
+Realtime = Annotated[bool | float, PlainValidator(_realtime)]
+"""``true``, ``false`` or a positive speed factor."""
