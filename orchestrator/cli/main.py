@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -28,9 +29,7 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
     """Run a scenario to its end and check its expectations."""
     sc = load_or_exit(scenario)
     if duration is not None:
-        from ..kernel.units import parse_duration_ns
-
-        sc.duration_ns = parse_duration_ns(duration)
+        sc.duration_ns = _duration_option(duration)
     try:
         world = sc.build()
     except ScenarioError as exc:
@@ -60,7 +59,7 @@ def _summary(result: RunResult, history: str) -> None:
                   f"{result.wall_time:.3f} s wall, real-time factor {result.realtime_factor:.1f}")
     console.print(f"history: {history}", markup=False)
     if result.error:
-        console.print(f"[bold red]run stopped:[/] {result.error}", markup=False)
+        console.print(f"[bold red]run stopped:[/] {escape(result.error)}")
     if result.expectations:
         table = Table(show_header=True, header_style="bold")
         table.add_column("check")
@@ -75,6 +74,21 @@ def _summary(result: RunResult, history: str) -> None:
         console.print(table)
     verdict = "[green]all checks passed[/]" if result.ok else "[red]failed[/]"
     console.print(verdict)
+
+
+def _duration_option(text: str) -> int:
+    """``--duration`` in nanoseconds, or exit 2 naming what is wrong with it."""
+    from ..kernel.units import NS_PER_S, parse_duration_ns
+    from ..scenario.limits import MAX_DURATION_S
+
+    try:
+        ns = parse_duration_ns(text)
+        if not 0 < ns <= MAX_DURATION_S * NS_PER_S:
+            raise DynabrainError(f"a duration is above 0 and at most {MAX_DURATION_S:g} s")
+    except DynabrainError as exc:
+        err_console.print(f"--duration {text}: {exc}", markup=False)
+        raise typer.Exit(2) from None
+    return ns
 
 
 @app.command()
