@@ -21,9 +21,11 @@ from dynabrain.orchestrator.brain import BACKENDS, Batch, BatchResult
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.history import WorldState
 from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.scenario.limits import MAX_MAGNITUDE
 
 from . import frames
 from . import protocol as p
+from .checks import ValueRefusedError, check_batch_params
 
 MAX_REASON = 2000
 """A failed branch's reason is cut to this many characters in the reply."""
@@ -82,8 +84,9 @@ class BatchCall:
         branches = self._branches(a)
         names = list(dict.fromkeys(a.record))
         self._check_limits(a, branches, names)
-        starts, start_ticks = self._starts(a, snapshot, branches)
         inputs = {name: _numbers(values, name) for name, values in a.inputs.items()}
+        check_batch_params(self.world, dict(a.params))
+        starts, start_ticks = self._starts(a, snapshot, branches)
         result = self.batch.run(a.ticks, branches=branches, starts=starts, inputs=inputs, params=dict(a.params),
                                 record=names, keep_states=a.keep_states)
         kept, evicted = self._keep(result, start_ticks, keep) if a.keep_states else ([None] * branches, [])
@@ -186,5 +189,7 @@ def _numbers(values: list[Any], name: str) -> np.ndarray:
         raise DynabrainError(f"batch: inputs[{name!r}]: expected finite numbers in nested lists of one shape, "
                              f"got {str(values)[:80]}") from None
     if not np.isfinite(arr).all():
-        raise DynabrainError(f"batch: inputs[{name!r}]: the values are not all finite")
+        raise ValueRefusedError(f"batch: inputs[{name!r}]: the values are not all finite")
+    if arr.size and float(np.max(np.abs(arr))) > MAX_MAGNITUDE:
+        raise ValueRefusedError(f"batch: inputs[{name!r}]: the values must be within ±{MAX_MAGNITUDE:g}")
     return arr

@@ -8,7 +8,8 @@ raises and changes nothing (the World's own guarantee; a failed tick is rolled b
 answers are the world's calls of `protocol.TABLE`, one ``do_<call>`` method each; the server answers
 the others (holds, forks, the loop, robots, its status).
 
-A long ``tick`` runs in slices of about `SLICE_S` of wall-clock
+Values from brains pass `checks` first (finite, within the scenario's limits; a parameter change that
+makes the next tick fail is refused). A long ``tick`` runs in slices of about `SLICE_S` of wall-clock
 time; between two slices the world lock is free and `WorldService.between_slices` (the server's hook)
 answers other calls, and may end the tick (`StoppedTickError`).
 """
@@ -31,11 +32,13 @@ from dynabrain.orchestrator.kernel.observers import WorldView
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
 from dynabrain.orchestrator.kernel.units import parse_duration_ns
 from dynabrain.orchestrator.kernel.world import World, as_connection
+from dynabrain.orchestrator.scenario.limits import MAX_MAGNITUDE, check_magnitudes
 from dynabrain.orchestrator.scenario.make import ModuleNotAllowedError, make_module
 
 from . import frames
 from . import protocol as p
 from .batching import BatchCall, BatchSettings, KeptState, Stored
+from .checks import ValueRefusedError, check_pose, check_set, trial_set
 
 DEFAULT_ALLOW_PYTHON = ("dynabrain.*",)
 """Module classes a remote brain may add (``fnmatch`` patterns on ``package.module:Class``)."""
@@ -120,8 +123,10 @@ class WorldService:
 
     def __init__(self, world: World, *, instance: int, allow_python: Sequence[str] = DEFAULT_ALLOW_PYTHON,
                  base_dir: str | None = None, max_snapshots: int = 64, max_views: int = 256,
-                 stream: Sequence[str] = (), batch: BatchSettings | None = None):
+                 stream: Sequence[str] = (), batch: BatchSettings | None = None, trial_params: bool = True):
         self.world = world
+        self.trial_params = trial_params
+        """Try a run-time parameter change on a fork first, one tick (`checks.trial_set`)."""
         self.between_slices: Callable[[int, int], str | None] | None = None
         """Called between two slices of a long ``tick`` (the world lock free) with the ticks done and
         asked; returns None to go on, or who stopped the tick. None: a tick runs whole."""
@@ -197,11 +202,21 @@ class WorldService:
         self.world.no_collision(a.objects)
 
     def do_place(self, a: p.PlaceArgs) -> None:
+        check_pose(a.body, a.pos, a.quat)
         self.world.place(a.body, a.pos, a.quat)
 
     # -- values ---------------------------------------------------------------------------------------------
     def do_set(self, a: p.SetArgs) -> None:
-        self.world.set(a.name, _value(a.value, a.name))
+        self.set_checked(a.name, _value(a.value, a.name))
+
+    def set_checked(self, name: str, value: Any) -> None:
+        """`World.set` of a value from a brain, once `checks` let it: finite, within the limits, and (a
+        run-time parameter, when ``trial_params``) not making the next tick fail."""
+        with self.world.lock():
+            target = check_set(self.world, name, value)
+            if isinstance(target, tuple) and self.trial_params:
+                trial_set(self.world, name, value)
+            self.world.set(name, value)
 
     def do_get(self, a: p.NameArgs) -> Any:
         return p.plain(self.world.get(a.name))
@@ -226,6 +241,10 @@ class WorldService:
             if os.path.isabs(path) or path.startswith(".."):
                 raise DynabrainError(f"module {spec.name!r}: an FMU is named relative to the scenario's folder, "
                                      f"got {spec.fmu!r}")
+        try:
+            check_magnitudes(spec.params, f"module {spec.name!r}: params")
+        except DynabrainError as exc:
+            raise ValueRefusedError(str(exc)) from None
         try:
             return make_module(spec, base_dir=self.base_dir or ".", allow_python=self.allow_python)
         except ModuleNotAllowedError as exc:
@@ -386,7 +405,7 @@ class WorldService:
         try:
             for name, value in pending.items():
                 try:
-                    self.world.set(name, _value(value, name))
+                    self.set_checked(name, _value(value, name))
                 except (DynabrainError, ValueError, TypeError) as exc:
                     self._input_error(f"input {name!r} dropped: {exc}")
         finally:
@@ -458,8 +477,9 @@ def _numeric(value: list[Any], name: str) -> np.ndarray:
 
 def _finite(value: Any, joint: str) -> float:
     x = float(value)
-    if not np.isfinite(x):
-        raise DynabrainError(f"target of joint {joint!r} is not finite: {value!r}")
+    if not np.isfinite(x) or abs(x) > MAX_MAGNITUDE:
+        raise ValueRefusedError(f"target of joint {joint!r} is not finite, or beyond ±{MAX_MAGNITUDE:g}: "
+                                f"{value!r}")
     return x
 
 

@@ -10,7 +10,8 @@ document are written from it.
 
 Every model refuses unknown fields and wrong types (strict: ``"1"`` is not an int) and non-finite numbers
 in its number fields (``NaN``, ``Infinity``, ``1e999``); a payload larger than its limit is refused before it
-is parsed.
+is parsed. Values a model leaves open (``set``'s value, a module's params, ``batch``'s inputs) are checked
+by the server (`checks`).
 """
 
 from __future__ import annotations

@@ -77,6 +77,8 @@ class ServeOptions:
     """A ``tick`` of at most this many steps runs on the Zenoh thread that delivered it."""
     batch: BatchSettings = field(default_factory=BatchSettings)
     """How ``batch`` calls run on the served world (its forks run theirs with the ``serial`` backend)."""
+    trial_params: bool = True
+    """Try a brain's run-time parameter change on a fork first, one tick, and refuse one that makes it fail."""
     tokenless_lease_s: float = p.TOKENLESS_LEASE_S
     """Most seconds of silence a hold lasts while its brain has no liveliness token."""
 
@@ -152,7 +154,7 @@ class BridgeServer:
         self.hold = Hold(name, self.events.emit, tokenless_lease=opts.tokenless_lease_s)
         service = WorldService(self.world, instance=self.instance, allow_python=opts.allow_python,
                                base_dir=opts.base_dir, stream=self._stream_signals() if opts.decimate else (),
-                               batch=opts.batch)
+                               batch=opts.batch, trial_params=opts.trial_params)
         service.on_input_error = lambda msg: self.events.emit("input_error", message=msg)
         self.main = self._serve(name, service)
         self.stream = StateStream(s, name, service, self.events, max(opts.decimate, 1))
@@ -389,7 +391,7 @@ class BridgeServer:
             raise DynabrainError(f"a world named {name!r} is already served here")
         world = served.service.world.fork(name)
         svc = WorldService(world, instance=self.instance, allow_python=self.options.allow_python,
-                           base_dir=self.options.base_dir,
+                           base_dir=self.options.base_dir, trial_params=self.options.trial_params,
                            batch=BatchSettings("serial", max_ticks=self.options.batch.max_ticks))
         svc.rigs = dict(served.service.rigs)
         self._serve(name, svc, owner=env.brain)

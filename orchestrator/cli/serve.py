@@ -106,8 +106,11 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
           batch_max_ticks: Annotated[int, typer.Option(
               "--batch-max-ticks", help="most branches x ticks in one `batch` call")] = 1_000_000,
           tokenless_lease: Annotated[str, typer.Option(
-              "--tokenless-lease", help="most silence a hold lasts while its brain has no liveliness token")] = "10s"
-          ) -> None:
+              "--tokenless-lease", help="most silence a hold lasts while its brain has no liveliness token")] = "10s",
+          trial_params: Annotated[bool, typer.Option(
+              "--trial-params/--no-trial-params",
+              help="try a brain's run-time parameter change on a fork, one tick, and refuse one that makes the tick "
+                   "fail")] = True) -> None:
     """Serve a world over Zenoh to remote brains (and robots) until interrupted."""
     from dynabrain.bridge.batching import BatchSettings
     from dynabrain.bridge.calls import DEFAULT_ALLOW_PYTHON
@@ -120,7 +123,8 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
     options = ServeOptions(name=name, stream=stream, decimate=decimate, robots=_robots(robot),
                            deadline_ns=parse_duration_ns(deadline), base_dir=sc.dir,
                            allow_python=DEFAULT_ALLOW_PYTHON if allow_python is None else allow_python, batch=batch,
-                           tokenless_lease_s=_positive_seconds(tokenless_lease, "--tokenless-lease"))
+                           tokenless_lease_s=_positive_seconds(tokenless_lease, "--tokenless-lease"),
+                           trial_params=trial_params)
     server = BridgeServer(world, settings, options)
     try:
         endpoints = server.open()
