@@ -252,3 +252,24 @@ def test_cli_duration_override_names_itself_and_errors_print_as_markup(tmp_path)
         main._summary(RunResult("s", 1, 0.001, 0.1, 1_000_000, [], error="module 'g' [x] failed"), "none")
     out = captured.get()
     assert "run stopped: module 'g' [x] failed" in out and "[bold red]" not in out
+
+
+def test_nan_is_set_only_where_an_input_means_unset_by_it(tmp_path):
+    head = """
+        name: t
+        world: {step: 2ms, duration: 20ms, core: mujoco}
+        scene:
+          - box: {name: aa, size: [0.1, 0.1, 0.1], mass: 1, pos: [0, 0, 0.5]}
+        modules:
+          - {name: g, python: dynabrain.modules.basic:Gain}
+        events:
+        """
+    path = tmp_path / "ok.yaml"
+    unset = "[.nan, .nan, 1, .nan, .nan, .nan]"
+    path.write_text(textwrap.dedent(head) + f"  - {{at: 4ms, set: {{core.aa.velocity: {unset}}}}}\n")
+    load_scenario(path).build().close()  # a body's velocity starts NaN: NaN there leaves a component alone
+    found = problems_of(tmp_path, head + """
+          - {at: 4ms, set: {core.aa.velocity: [.inf, 0, 0, 0, 0, 0]}}
+          - {at: 6ms, set: {g.u: [.nan]}}
+        """)
+    assert len(found) == 2 and all("finite" in p for p in found), found

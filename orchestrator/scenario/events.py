@@ -159,16 +159,17 @@ def _value_problem(world: World, target: str | tuple[Any, str], value: Any) -> s
         if not spec.runtime:
             return "this parameter cannot be changed at run time"
         return param_problem(spec, value, CORE_LIMITS.get(key) if module is world.core else None)
+    current = world.get(target)  # at load: the input's start value
     try:
         arr = np.asarray(value, dtype=np.float64)
-        check_magnitudes(arr, "the value")
+        unset = np.isnan(arr) if np.all(np.isnan(current)) else np.zeros(arr.shape, bool)
+        check_magnitudes(arr[~unset], "the value")  # NaN only where it means "unset" (a body's velocity)
     except DynabrainError as exc:
         return str(exc)
     except (TypeError, ValueError):
         return f"an input takes numbers, got {short(value)}"
-    shape = np.shape(world.get(target))
-    if arr.shape != shape:
-        return f"the input has shape {shape}, got a value of shape {arr.shape}"
+    if arr.shape != np.shape(current):
+        return f"the input has shape {np.shape(current)}, got a value of shape {arr.shape}"
     return None
 
 
