@@ -17,11 +17,13 @@ import math
 
 import numpy as np
 
-from dynabrain.orchestrator.kernel.module import Module, Param, Port
+from dynabrain.orchestrator.kernel.module import Capabilities, Module, Param, Port
 
 
 class CycleMeter(Module):
     """Cycles and swing amplitudes of an oscillating signal (see the module docstring)."""
+
+    CAPABILITIES = Capabilities(finite_outputs=False)  # NaN: no swing measured yet
 
     PARAMS = (
         Param("unit", "rad", doc="unit of the signal"),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dynabrain.orchestrator.kernel.module import Module, Param, Port
+from dynabrain.orchestrator.kernel.module import Capabilities, Module, Param, Port
 
 
 class BounceMeter(Module):
@@ -15,6 +15,8 @@ class BounceMeter(Module):
     the height it starts falling from, NaN until reached; ``count``: apexes recorded so far. Apexes
     lower than ``min_height`` (contact jitter at rest) are ignored.
     """
+
+    CAPABILITIES = Capabilities(finite_outputs=False)  # NaN: an apex not reached yet
 
     PARAMS = (
         Param("radius", 0.0, unit="m", dimension="length", doc="distance from the body origin to its bottom"),

@@ -36,7 +36,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.module import Capabilities, Module, Param, Port, SetupContext
 
 from .mujoco.access import MujocoLink, fail
 from .support import ContactOverflowError, feet_support
@@ -51,6 +51,8 @@ _NETFORCE = 3  # reduce="netforce"
 
 class ZmpSensor(Module):
     """ZMP and support polygon of a set of feet (see the module docstring)."""
+
+    CAPABILITIES = Capabilities(finite_outputs=False)  # NaN: a foot (or both) off the ground
 
     PARAMS = (
         Param("min_force", 1.0, unit="N", runtime=True,

@@ -73,6 +73,15 @@ class PhysicsDivergedError(ModuleError):
     """The physics produced NaN or ran away; the tick was rolled back."""
 
 
+class NonFiniteOutputError(ModuleError):
+    """A module's output became NaN or infinite (modules say so with ``Capabilities.finite_outputs``
+    when that is meant); the tick was rolled back. ``port`` names the output."""
+
+    def __init__(self, module: str, call: str, tick: int | None, cause: BaseException | str, port: str = ""):
+        super().__init__(module, call, tick, cause)
+        self.port = port
+
+
 class RollbackError(DynabrainError):
     """A rollback that cannot be done exactly (beyond the history, or a module that cannot roll back)."""
 

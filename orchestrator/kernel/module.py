@@ -43,7 +43,9 @@ directly, never looks them up by name.
 
 Failure policy: an exception from `setup` or `start` refuses the module (the world is unchanged);
 an exception from `step` (or a `PhysicsDivergedError`) rolls the whole world back to the state at
-the start of the failed tick and is re-raised as `ModuleError` naming the module, call and tick.
+the start of the failed tick and is re-raised as `ModuleError` naming the module, call and tick; so
+does an output left NaN or infinite (`NonFiniteOutputError`), unless the module declares
+``Capabilities(finite_outputs=False)``.
 `get_state` must return a value the module will never mutate afterwards (copy arrays); `set_state`
 must copy what it keeps. Randomness comes from `ctx.rng` and its state belongs in `get_state`.
 """
@@ -169,11 +171,18 @@ class Capabilities:
     - ``feedthrough``: its outputs after a step depend on the inputs of that step. A module whose
       outputs depend on its state only (a physics core, an integrator) is not feedthrough; the
       schedule lets its consumers read its outputs before it steps, which breaks feedback loops.
+    - ``finite_outputs``: its outputs are always finite numbers. The world checks them after every
+      tick; one that holds NaN or an infinity fails the tick (rolled back, `NonFiniteOutputError`
+      naming module, port and tick). False for a module whose outputs mean something by NaN or an
+      infinity (a ZMP sensor with no foot on the ground, a meter before its first reading): its
+      outputs are not checked. A single module opts out with
+      ``module.CAPABILITIES = dataclasses.replace(module.CAPABILITIES, finite_outputs=False)``.
     """
 
     can_rollback: bool = True
     can_fork: bool = True
     feedthrough: bool = True
+    finite_outputs: bool = True
 
 
 @dataclass

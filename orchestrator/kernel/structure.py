@@ -30,6 +30,7 @@ import numpy as np
 
 from .compiled import CompiledTick, PlainTick
 from .errors import AlgebraicLoopError, WiringError
+from .finite import OutputCheck
 from .module import NO_PORTS, Module, Port, PortBinding
 from .suggest import did_you_mean
 from .units import same_unit
@@ -221,6 +222,11 @@ class Structure:
     def compiled(self) -> CompiledTick:
         """The tick of this structure as one generated function (see `orchestrator.kernel.compiled`)."""
         return CompiledTick(self)
+
+    @functools.cached_property
+    def output_check(self) -> OutputCheck:
+        """Which outputs the world checks are finite after each tick (see `orchestrator.kernel.finite`)."""
+        return OutputCheck(self)
 
     @functools.cached_property
     def plain(self) -> PlainTick:

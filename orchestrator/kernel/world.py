@@ -9,7 +9,8 @@ One tick (n -> n+1), the failure policy of each phase in brackets:
 1. if the world was edited since the state of tick n was saved, save it again (edits are inputs);
 2. fire the scenario's events due at tick n  [an error rolls back to tick n and is raised];
 3. copy delayed connections; step each due module in schedule order, copying its direct inputs
-   first  [an exception rolls back to tick n and is raised as `ModuleError`];
+   first  [an exception rolls back to tick n and is raised as `ModuleError`]; check that the outputs
+   are finite  [a NaN or an infinity rolls back to tick n: `NonFiniteOutputError`, see `finite`];
 4. tick = n+1; save the state in history; tell observers.
 """
 
@@ -82,6 +83,7 @@ class World:
         self._buf = np.zeros(0)
         self._mv = memoryview(self._buf)  # the bus again: the tick's copies are cheaper on it
         self._ro = _read_only(self._buf)  # and read-only, for observers
+        self._finite: tuple = ()  # the spans of outputs checked after each tick (`OutputCheck.probes`)
         self._tick = 0
         self._dirty = True
         self._closed = False
@@ -195,6 +197,10 @@ class World:
             runner = self._structure.compiled if self._compiled else self._structure.plain
             current = None
             runner.run(n, n * self.dt_ns, self._mv, self._buf)
+            for add, values in self._finite:  # are the outputs finite? (`orchestrator.kernel.finite`)
+                total = add(values)
+                if not -1e309 < total < 1e309:  # 1e309 is inf: NaN or inf, some value is not finite
+                    self._structure.output_check.search(self._buf, n)
         except Exception as exc:  # roll back to the last good tick, then report
             self._source = "api"
             if current is None:  # a module's step: the traceback says which
@@ -436,6 +442,7 @@ class World:
                     buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
         self._buf, self._mv, self._ro = buf, memoryview(buf), _read_only(buf)
         self._structure = structure
+        self._finite = structure.output_check.probes(buf, self._mv)
         for rec in structure.records:
             rec.module.bind_ports(structure.layout.modules[rec.name].binding(buf, self._ro, self._param_changed))
             rec.module.bind()
