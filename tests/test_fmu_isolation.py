@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.Log_pb2 import Log
 from mcap.reader import make_reader
 
 from dynabrain.orchestrator.fmu import FMUCallError, FMUCrashError, FMUTimeoutError, make_fmu_module
@@ -226,7 +227,8 @@ def test_the_mcap_log_stays_readable_after_a_crash(crashy, tmp_path):
     with open(path, "rb") as fh:
         reader = make_reader(fh)
         assert reader.get_summary() is not None
-        events = [json.loads(m.data) for _s, ch, m in reader.iter_messages() if ch.topic == "/events"]
+        events = [json.loads(Log.FromString(m.data).message)  # foxglove.Log, the event as JSON in its message
+                  for _s, ch, m in reader.iter_messages() if ch.topic == "/events"]
     errors = [e for e in events if e["kind"] == "error"]
     assert len(errors) == 1 and errors[0]["tick"] == 20 and "SIGSEGV" in errors[0]["detail"]["message"]
     assert errors[0]["detail"]["module"] == "c"

@@ -36,10 +36,11 @@ RECORD = ["core.cart.pos", "core.cart.quat", "core.s.q"]
 
 
 def read(path: Path, topic: str) -> list:
-    """(log_time, sequence, decoded message) of a topic, with the mcap package and its protobuf decoder."""
+    """(simulated time, sequence, decoded message) of a topic, with the mcap package and its protobuf
+    decoder (the publish time is the simulated time; the log time is the run's wall-clock start plus it)."""
     with open(path, "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-        return [(m.log_time, m.sequence, d) for _s, _c, m, d in reader.iter_decoded_messages(topics=[topic])]
+        return [(m.publish_time, m.sequence, d) for _s, _c, m, d in reader.iter_decoded_messages(topics=[topic])]
 
 
 def channels(path: Path) -> dict[str, dict[str, str]]:
@@ -97,10 +98,12 @@ def test_kept_branches_are_on_their_own_channels_at_their_own_ticks(session):
         assert {(f.parent_frame_id, f.child_frame_id) for f in frames} == {("world", f"imagined/push/{b}/cart")}
         assert np.array([[f.translation.x, f.translation.y, f.translation.z] for f in frames]).tobytes() \
             == pos.tobytes()
-        assert frames[-1].timestamp.ToNanoseconds() == 50 * DT
+        origin = read_index(path).info.time_origin_ns  # Foxglove timestamps are log times
+        assert frames[-1].timestamp.ToNanoseconds() == origin + 50 * DT
         (when, _s, scene), = read(path, f"/imagined/push/{b}/scene")
         entity, = scene.entities
-        assert when == 21 * DT and entity.frame_id == f"imagined/push/{b}/cart" and entity.frame_locked
+        assert when == 21 * DT and entity.timestamp.ToNanoseconds() == origin + 21 * DT
+        assert entity.frame_id == f"imagined/push/{b}/cart" and entity.frame_locked
         assert entity.lifetime.ToNanoseconds() == 30 * DT and 0 < entity.cubes[0].color.a < 1
     pushed = read(path, "/imagined/push/2/bus")
     assert pushed[-1][2].core__s__q > 0 > read(path, "/imagined/push/0/bus")[-1][2].core__s__q

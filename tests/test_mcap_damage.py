@@ -46,7 +46,7 @@ def chunks(path: Path) -> list[tuple[int, int, set[int]]]:
                     for c in summary.chunk_indexes)
     with open(path, "rb") as fh:
         found = [rec for rec in StreamReader(fh, emit_chunks=True).records if type(rec).__name__ == "Chunk"]
-    ticks = [{m.log_time // DT for m in breakup_chunk(c) if getattr(m, "channel_id", None) in bus} for c in found]
+    ticks = [{m.publish_time // DT for m in breakup_chunk(c) if getattr(m, "channel_id", None) in bus} for c in found]
     return [(a, b, t) for (a, b), t in zip(places, ticks, strict=True)]
 
 
@@ -56,7 +56,7 @@ def kept_ticks(path: Path) -> list[int]:
         for _ in StreamReader(fh, validate_crcs=True).records:
             pass
     with open(path, "rb") as fh:
-        return sorted(m.log_time // DT for _s, _c, m in make_reader(fh).iter_messages(topics=["/bus"]))
+        return sorted(m.publish_time // DT for _s, _c, m in make_reader(fh).iter_messages(topics=["/bus"]))
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ rollbacks leave the run on the main topics and the discarded ticks on /discarded
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -33,11 +34,12 @@ def record(tmp_path: Path, name: str = "two_cubes", **kw):
     return world, tmp_path / "run.mcap"
 
 
-def messages(path: Path, topic: str, cls=None):
-    """(log_time, sequence, message) of a topic, read with the mcap package (an independent reader)."""
+def messages(path: Path, topic: str, cls=None, *, log_time: bool = False):
+    """(simulated time, sequence, message) of a topic, read with the mcap package (an independent reader):
+    the publish time, or with ``log_time`` the log time (the wall-clock start plus the simulated time)."""
     with open(path, "rb") as fh:
         reader = make_reader(fh)
-        return [(m.log_time, m.sequence, cls.FromString(m.data) if cls else m.data)
+        return [(m.log_time if log_time else m.publish_time, m.sequence, cls.FromString(m.data) if cls else m.data)
                 for _s, _c, m in reader.iter_messages(topics=[topic], log_time_order=False)]
 
 
@@ -61,8 +63,11 @@ def test_round_trip_holds_what_the_world_had(tmp_path, writer):
 
     tf = messages(path, "/tf", FrameTransforms)
     assert [t for t, _s, _m in tf] == [k * 2_000_000 for k in range(0, 121, 5)]
-    for log_time, _seq, msg in tf[1:]:
-        tick = log_time // 2_000_000
+    origin = index.info.time_origin_ns
+    assert abs(origin - time.time_ns()) < 600e9  # the run's wall-clock start, not 1970
+    assert [t for t, _s, _m in messages(path, "/tf", log_time=True)] == [origin + t for t, _s, _m in tf]
+    for sim_time, _seq, msg in tf[1:]:
+        tick, log_time = sim_time // 2_000_000, origin + sim_time
         assert {t.child_frame_id for t in msg.transforms} == {"floor", "aa", "bb"}
         for t in msg.transforms:
             pos, quat = poses[tick][t.child_frame_id]
@@ -90,7 +95,7 @@ def test_file_is_valid_mcap_and_every_schema_decodes(tmp_path):
         assert summary.statistics.chunk_count > 3
         decoded = {}
         for _schema, channel, message, value in reader.iter_decoded_messages(topics=["/bus", "/tf", "/scene"]):
-            decoded.setdefault(channel.topic, []).append((message.log_time, value))
+            decoded.setdefault(channel.topic, []).append((message.publish_time, value))
     assert len(decoded["/bus"]) == len(decoded["/tf"]) == 201 and len(decoded["/scene"]) == 1
     bus_schema = next(sc for sc in summary.schemas.values() if sc.name == "dynabrain.layout1.Bus")
     comments = [loc.leading_comments for f in FileDescriptorSet.FromString(bus_schema.data).file
@@ -182,8 +187,10 @@ def test_modules_arriving_and_leaving_change_the_layout(tmp_path):
             assert "wave.y" in r.codec.by_name
     assert numbers[1] == numbers[2] == numbers[3]  # a signal keeps its field number in every layout
     assert codecs == {1: list(range(11)), 2: list(range(11, 21)), 3: list(range(21, 31))}
-    topics = {index.channels[c].topic for c in index.channels if index.is_bus(c)}
-    assert topics == {"/bus"}
+    topics = {index.channels[c].topic: index.bus_codec(c).key
+              for c in index.channels if index.is_bus(c)}
+    assert topics == {"/bus": 1, "/bus/layout2": 2, "/bus/layout3": 3}  # one schema per topic
+    assert [d["topic"] for d in layouts] == ["/bus", "/bus/layout2", "/bus/layout3"]
 
 
 def test_scene_draws_every_shape_and_meshes(tmp_path):

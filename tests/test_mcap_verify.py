@@ -183,9 +183,9 @@ def change_bus_value(src: Path, dst: Path, *, tick: int, signal: str, component:
         elif isinstance(rec, Message):
             data = rec.data
             codec = codecs.get(rec.channel_id)
-            if codec is not None and rec.log_time == tick * 2_000_000:
+            if codec is not None and rec.publish_time == tick * 2_000_000:
                 rows, ticks, epochs = codec.decode(np.frombuffer(data, dtype=np.uint8))
                 rows[0, codec.by_name[signal].offset + component] += delta
                 data = codec.encode(rows, ticks, epochs, 2_000_000)[0].tobytes()
-            writer.add_message(rec.channel_id, rec.log_time, data, rec.sequence)
+            writer.add_message(rec.channel_id, rec.log_time, data, rec.sequence, rec.publish_time)
     writer.finish()

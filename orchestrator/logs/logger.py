@@ -15,6 +15,13 @@ it. A rollback that reaches further back than the window finds ticks already wri
 then rewritten on close (`logs.recover.rewrite`) so that those, too, move to ``/discarded/...``.
 ``dynabrain run`` cannot roll back (except a failed tick, which discards nothing), so it uses no window.
 
+**Order.** Messages are written in log-time order (`logs.write`, `logs.sink`): log time is the run's
+wall-clock start plus the simulated time (`logs.schema`). A rollback produces ticks again, at times
+already written; such a log is rewritten in log-time order when it closes (`logs.recover.rewrite`,
+which holds the file's messages in memory for that), with the ``/bus`` family, ``/tf`` and ``/scene``
+holding the run and the discarded ticks on ``/discarded/...``, side by side at their times. Readers that
+need the order in which ticks were produced sort by (epoch, tick) (`logs.read`).
+
 **Imagined futures.** A branch the brain imagined and keeps (`World.imagine`; `on_imagined`) is
 written at once to its own ``/imagined/<name>/<branch>/...`` channels, at its own future ticks, with an
 ``imagined`` event: it is not the run, so it never waits in the window and no rollback discards it.
@@ -51,6 +58,7 @@ from typing import Any
 
 import numpy as np
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
 from ..kernel.errors import DynabrainError
@@ -63,7 +71,9 @@ from .schema import (
     METADATA_NAME,
     BusCodec,
     FieldNumbers,
+    bus_topic,
     event_bytes,
+    event_level,
     foxglove_descriptor,
     imagined_frame,
     pose_columns,
@@ -153,6 +163,9 @@ class McapLogger(Observer):
         self._failing: int | None = None
         self._lock: Any = None
         self._world: Any = None
+        self.origin_ns = 0
+        """The log time of tick 0 (ns since 1970): the wall-clock time at `attach`, less that tick's
+        simulated time (see `logs.schema`)."""
         self.closed = False
 
     # -- attaching ------------------------------------------------------------------------------------
@@ -163,16 +176,21 @@ class McapLogger(Observer):
             self._world, self._lock, self._dt = world, world.lock(), world.dt_ns
             if self.scene_every is None:
                 self.scene_every = max(1, round(1e9 / self._dt))
+            wall_ns = time.time_ns()
+            self.origin_ns = wall_ns - view.tick * self._dt
             if view.core is not None:
                 self._scene = SceneDrawing(view.core)
                 self._bodies = list(view.core.bodies())
-            descriptors = {cls.DESCRIPTOR.full_name: foxglove_descriptor(cls) for cls in (FrameTransforms, SceneUpdate)}
+            descriptors = {cls.DESCRIPTOR.full_name: foxglove_descriptor(cls)
+                           for cls in (FrameTransforms, SceneUpdate, Log)}
             sink = ProcessSink if self.writer == "process" else ThreadSink
-            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors)
+            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors,
+                              self.origin_ns)
             try:
                 settings = {"decimate": self.decimate, "scene_every": self.scene_every, "window": self.window,
                             "batch": self.batch, "writer": self.writer, **self._writer_args}
-                self._sink.call(Metadata(METADATA_NAME, run_metadata(world, scenario, settings)))
+                meta = run_metadata(world, scenario, settings, wall_ns=wall_ns, origin_ns=self.origin_ns)
+                self._sink.call(Metadata(METADATA_NAME, meta))
                 self._refresh_layout(view)
                 self._push(view, view.bus())
             except BaseException:
@@ -254,7 +272,7 @@ class McapLogger(Observer):
         scene = b""
         if bodies and self._scene is not None:
             frames = [imagined_frame(name, branch, b) for b in bodies]
-            scene = self._scene.imagined(bodies, frames, (start + 1) * self._dt, ticks * self._dt)
+            scene = self._scene.imagined(bodies, frames, self.origin_ns + (start + 1) * self._dt, ticks * self._dt)
         self._sink.call(ImaginedRows(name, branch, start, self._epoch, slots, rows, bodies, cols, scene))
         self._event("imagined", view.tick, {"name": name, "branch": branch, "start_tick": start, "ticks": ticks,
                                             "signals": list(imagined.signals), "topic": f"{IMAGINED}/{name}/{branch}",
@@ -273,16 +291,17 @@ class McapLogger(Observer):
             raise DynabrainError(f"the log {self.path} is not recording (attach it to a world first)")
         with self._lock:
             tick = int(result.ticks)
-            for exp in result.expectations:
+            for exp in result.expectations:  # at the run's end, when they are known (their ticks are in them)
                 detail = {"name": exp.label, "that": exp.that, "passed": bool(exp.passed), "detail": exp.detail,
                           "from_tick": exp.start, "to_tick": exp.end}
-                self._event("expect", min(exp.end, tick), detail, "log")
+                self._event("expect", tick, detail, "log")
             self._event("run_end", tick, {"ticks": tick, "sim_time": result.sim_time, "wall_time": result.wall_time,
                                           "error": result.error, "ok": result.ok}, "log")
 
     def close(self) -> None:
         """Write what is waiting, the summary and the footer; rewrite the file if a rollback reached
-        ticks already written (see the module docstring). Idempotent."""
+        ticks already written, or messages were written out of log-time order (see the module
+        docstring). Idempotent."""
         if self.closed or self._sink is None:
             return
         with self._lock:
@@ -293,7 +312,7 @@ class McapLogger(Observer):
                 self._drain(self._waiting)
             finally:
                 self._sink.finish()
-        if self._compact:
+        if self._compact or self._sink.stats.get("out_of_order"):
             from .recover import rewrite
 
             tmp = self.path + ".compacting"
@@ -321,7 +340,7 @@ class McapLogger(Observer):
             block.extra[row] = np.concatenate([np.concatenate(core.body_pose(b)) for b in self._missing])
         if tick >= self._next_scene:
             if self._scene is not None:
-                block.scenes.append((row, self._scene.encode(tick * self._dt)))
+                block.scenes.append((row, self._scene.encode(self.origin_ns + tick * self._dt)))
             self._next_scene = tick + self.scene_every
         block.n += 1
         self._expect = tick + 1
@@ -382,7 +401,8 @@ class McapLogger(Observer):
             self._codecs[signature] = codec
             cols, missing = self._pose_index[codec.key] = self._pose_plan(view, codec)
             self._sink.call(Layout(codec.key, codec.metadata(), cols, missing))
-            detail: dict[str, Any] = {"layout": codec.key, "signals": len(codec.slots), "values": size}
+            detail: dict[str, Any] = {"layout": codec.key, "topic": bus_topic(codec.key), "signals": len(codec.slots),
+                                      "values": size}
             if self._codec is not None:
                 detail["added"] = sorted(set(codec.by_name) - set(self._codec.by_name))
                 detail["removed"] = sorted(set(self._codec.by_name) - set(codec.by_name))
@@ -424,7 +444,8 @@ class McapLogger(Observer):
         self._seq += 1
         body = {"seq": self._seq, "tick": tick, "time": tick * self._dt / 1e9, "epoch": self._epoch, "kind": kind,
                 "source": source, "detail": detail}
-        self._sink.call(Event(tick * self._dt, event_bytes(body), self._epoch))
+        self._sink.call(Event(tick * self._dt, kind, event_level(kind, detail), event_bytes(body).decode(),
+                              self._epoch))
 
 
 def _imagined_poses(core: str | None, offsets: dict[str, tuple[int, tuple[int, ...]]]) -> tuple[list[str], np.ndarray]:

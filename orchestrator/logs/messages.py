@@ -44,10 +44,13 @@ class Layout(NamedTuple):
 
 
 class Event(NamedTuple):
-    """One ``/events`` message (JSON bytes)."""
+    """One ``/events`` message: at simulated time ``time_ns``, its ``kind`` (the ``foxglove.Log`` name),
+    ``level`` (`schema.event_level`) and ``text`` (the event as JSON)."""
 
     time_ns: int
-    data: bytes
+    kind: str
+    level: int
+    text: str
     epoch: int
 
 
@@ -100,6 +103,7 @@ class Open(NamedTuple):
     decimate: int
     bodies: list[str] | None
     descriptors: dict[str, bytes]
+    origin_ns: int
 
 
 class Shared(NamedTuple):

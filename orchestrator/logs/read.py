@@ -1,13 +1,16 @@
 """Reading a log: its index (metadata, channels, events, which messages are the run) and its bus rows.
 
 `read_index` scans a file once and keeps everything but the message data: per channel the count and
-time range, the events of a dynabrain log, and each message's (epoch, tick) for `final_mask`, the rule
-that tells the run from what rollbacks discarded (see `logs.logger`). Files from other tools are read
-too (channels, counts, times); they just have no dynabrain metadata.
+time range, the events of a dynabrain log (in the order they were produced: by ``seq``), and each
+message's (epoch, tick) for `final_mask`, the rule that tells the run from what rollbacks discarded
+(see `logs.logger`). A message's tick is its publish time (simulated time) over the step; its log time
+is the wall-clock start plus that (`logs.schema`). Files from other tools are read too (channels,
+counts, times); they just have no dynabrain metadata.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 from collections.abc import Iterator
@@ -18,12 +21,18 @@ import numpy as np
 
 from .meta import RunInfo
 from .scan import Channel, Header, LogError, Message, Metadata, ScanReport, Schema, scan
-from .schema import DISCARDED, FORMAT, IMAGINED, METADATA_NAME, TOPIC_BUS, TOPIC_EVENTS, BusCodec
+from .schema import DISCARDED, FORMAT, IMAGINED, METADATA_NAME, TOPIC_BUS, TOPIC_EVENTS, BusCodec, bus_family
 
 
 def family(topic: str) -> str:
     """``/discarded/bus`` -> ``/bus``: the topic a discarded message would have had."""
     return topic[len(DISCARDED):] if topic.startswith(DISCARDED + "/") else topic
+
+
+def run_family(topic: str) -> str:
+    """The topics whose messages share ticks: ``/discarded/bus/layout2`` -> ``/bus``, ``/discarded/tf``
+    -> ``/tf``."""
+    return bus_family(family(topic))
 
 
 @dataclass
@@ -38,8 +47,10 @@ class LogIndex:
     times: dict[int, tuple[int, int]] = field(default_factory=dict)
     events: list[dict] = field(default_factory=list)
     keys: dict[str, list[tuple[int, int, int]]] = field(default_factory=dict)
-    """Per topic family: (epoch, tick, file position) of each message (``/imagined/...`` topics have none:
-    they are not the run, and rollbacks do not apply to them)."""
+    """Per topic family (`run_family`): (epoch, tick, file position) of each message (``/imagined/...``
+    topics have none: they are not the run, and rollbacks do not apply to them)."""
+    ordered: bool = True
+    """The messages' log times never decrease in file order (what strict MCAP readers require)."""
 
     @property
     def info(self) -> RunInfo | None:
@@ -80,7 +91,7 @@ class LogIndex:
 
     def is_bus(self, channel_id: int) -> bool:
         ch = self.channels.get(channel_id)
-        return ch is not None and family(ch.topic) == TOPIC_BUS and "layout" in ch.metadata
+        return ch is not None and run_family(ch.topic) == TOPIC_BUS and "layout" in ch.metadata
 
     @property
     def time_range(self) -> tuple[int, int] | None:
@@ -92,18 +103,22 @@ class LogIndex:
 def read_index(path: str | os.PathLike[str], *, lenient: bool = False) -> LogIndex:
     """Scan ``path`` once (see the module docstring). Strict by default: a truncated file raises."""
     index = LogIndex(os.fspath(path), ScanReport())
-    dt_ns, pos, dynabrain = 1, 0, False
+    dt_ns, pos, dynabrain, latest = 1, 0, False, 0
     for rec in scan(path, index.report, lenient=lenient):
         if isinstance(rec, Message):
             pos += 1
             _count(index, rec)
+            if rec.log_time < latest:
+                index.ordered = False
+            latest = max(latest, rec.log_time)
             ch = index.channels.get(rec.channel_id)
             if ch is None:
                 continue
-            if ch.topic == TOPIC_EVENTS and ch.encoding == "json" and dynabrain:
-                index.events.append(_event(rec, index.path))
+            if ch.topic == TOPIC_EVENTS and dynabrain:
+                index.events.append(_event(rec, ch, index))
             elif not ch.topic.startswith(IMAGINED + "/"):  # what a brain imagined is no part of the run
-                index.keys.setdefault(family(ch.topic), []).append((rec.sequence, rec.log_time // dt_ns, pos))
+                index.keys.setdefault(run_family(ch.topic), []).append((rec.sequence, rec.publish_time // dt_ns,
+                                                                         pos))
         elif isinstance(rec, Channel):
             index.channels[rec.id] = rec
         elif isinstance(rec, Schema):
@@ -115,6 +130,7 @@ def read_index(path: str | os.PathLike[str], *, lenient: bool = False) -> LogInd
                 dt_ns = int(rec.values["dt_ns"]) if rec.values.get("dt_ns", "").isdigit() else 1
         elif isinstance(rec, Header):
             index.header = rec
+    index.events.sort(key=lambda e: e.get("seq", 0) if isinstance(e.get("seq"), int) else 0)
     return index
 
 
@@ -125,9 +141,20 @@ def _count(index: LogIndex, msg: Message) -> None:
     index.times[cid] = (min(lo, msg.log_time), max(hi, msg.log_time))
 
 
-def _event(msg: Message, path: str) -> dict:
+def _event(msg: Message, ch: Channel, index: LogIndex) -> dict:
+    """An event: a ``foxglove.Log`` whose message is the event's JSON, or (logs written before) the JSON."""
+    path, text = index.path, msg.data
+    schema = index.schemas.get(ch.schema_id)
+    if ch.encoding == "protobuf" and schema is not None and schema.name == "foxglove.Log":
+        from foxglove_schemas_protobuf.Log_pb2 import Log
+        from google.protobuf.message import DecodeError
+
+        try:
+            text = Log.FromString(msg.data).message
+        except DecodeError as exc:
+            raise LogError(f"{path}: an event at log time {msg.log_time} ns is not a foxglove.Log ({exc})") from None
     try:
-        event = json.loads(msg.data)
+        event = json.loads(text)
     except ValueError as exc:
         raise LogError(f"{path}: an event at log time {msg.log_time} ns is not valid JSON ({exc})") from None
     if not isinstance(event, dict) or "kind" not in event:
@@ -180,8 +207,19 @@ class BusRow(NamedTuple):
     topic: str
 
 
-def iter_bus(path: str | os.PathLike[str], index: LogIndex, *, lenient: bool = False) -> Iterator[BusRow]:
-    """Every bus message (of the run and discarded ones), decoded, in file order."""
+def iter_bus(path: str | os.PathLike[str], index: LogIndex, *, lenient: bool = False, produced: bool = False
+             ) -> Iterator[BusRow]:
+    """Every bus message (of the run and discarded ones), decoded, in file order; ``produced``: in the
+    order the world produced them (by epoch, then tick: a log with rollbacks holds them in log-time
+    order, where a rollback's ticks sit beside the ticks it discarded; those are sorted in memory)."""
+    keys = index.keys.get(TOPIC_BUS, [])
+    if produced and any((a[0], a[1]) > (b[0], b[1]) for a, b in itertools.pairwise(keys)):
+        yield from sorted(_iter_bus(path, index, lenient), key=lambda r: (r.epoch, r.tick, r.pos))
+    else:
+        yield from _iter_bus(path, index, lenient)
+
+
+def _iter_bus(path: str | os.PathLike[str], index: LogIndex, lenient: bool) -> Iterator[BusRow]:
     codecs: dict[int, BusCodec] = {}
     pos = 0
     for rec in scan(path, lenient=lenient):

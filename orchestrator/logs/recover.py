@@ -7,8 +7,10 @@ its ``/discarded/...`` topic, so ``/bus``, ``/tf`` and ``/scene`` hold exactly w
 With ``lenient=True`` (``dynabrain log recover``) a damaged record is skipped instead of failing: the
 scan resynchronises on the next valid chunk (`logs.scan`), so every intact chunk is kept, before and
 after the damage, and a file cut short keeps everything up to its last complete chunk. A message whose
-channel was declared only in lost bytes cannot be decoded and is dropped (counted). Message order,
-times and sequence numbers are kept as they were.
+channel was declared only in lost bytes cannot be decoded and is dropped (counted). Times and
+sequence numbers are kept as they were; so is the messages' order when their log times never decrease
+in it, else they are written in log-time order (stable: at equal times, in the order they were in),
+which needs every message of the file in memory at once (a log whose world rolled back).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from .read import LogIndex, family, read_index
+from .read import LogIndex, family, read_index, run_family
 from .scan import Channel, Damage, Message, Schema, scan
 from .schema import DISCARDED, TOPIC_BUS
 from .write import McapWriter
@@ -79,6 +81,7 @@ def _copy_records(src: str, index: LogIndex, writer: McapWriter, finals: dict[st
     moved_ids: dict[int, int] = {}
     next_id = max(index.channels, default=0) + 1
     moved = dropped = pos = 0
+    held: list[tuple[int, int, int, Message]] | None = None if index.ordered else []
     for rec in scan(src, lenient=lenient):
         if isinstance(rec, Schema) and rec.id not in schemas:
             schemas.add(rec.id)
@@ -93,9 +96,9 @@ def _copy_records(src: str, index: LogIndex, writer: McapWriter, finals: dict[st
             if ch is None:  # its channel was declared in lost bytes: nothing can read it
                 dropped += 1
                 continue
-            if finals is not None and family(ch.topic) in finals:
+            if finals is not None and run_family(ch.topic) in finals:
                 fam = family(ch.topic)
-                target = fam if pos in finals[fam] else DISCARDED + fam
+                target = fam if pos in finals[run_family(fam)] else DISCARDED + fam
                 if target != ch.topic:
                     moved += 1
                     if cid not in moved_ids:
@@ -103,7 +106,12 @@ def _copy_records(src: str, index: LogIndex, writer: McapWriter, finals: dict[st
                                                             channel_id=next_id)
                         next_id += 1
                     cid = moved_ids[cid]
-            writer.add_message(cid, rec.log_time, rec.data, rec.sequence)
+            if held is None:
+                writer.add_message(cid, rec.log_time, rec.data, rec.sequence, rec.publish_time)
+            else:
+                held.append((rec.log_time, pos, cid, rec))
+    for log_time, _pos, cid, msg in sorted(held or (), key=lambda h: (h[0], h[1])):
+        writer.add_message(cid, log_time, msg.data, msg.sequence, msg.publish_time)
     return moved, dropped
 
 

@@ -75,6 +75,7 @@ class Message:
     sequence: int
     log_time: int
     data: bytes
+    publish_time: int = 0
 
 
 @dataclass(frozen=True)
@@ -295,8 +296,8 @@ def _chunk(body: bytes):
 
 
 def _message(buf: bytes, start: int, end: int) -> Message:
-    cid, seq, log_time, _pub = struct.unpack_from("<HIQQ", buf, start)
-    return Message(cid, seq, log_time, buf[start + 22:end])
+    cid, seq, log_time, pub = struct.unpack_from("<HIQQ", buf, start)
+    return Message(cid, seq, log_time, buf[start + 22:end], pub)
 
 
 def _schema(body: bytes) -> Schema:

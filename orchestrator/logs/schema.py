@@ -1,25 +1,44 @@
 """What a dynabrain log holds, channel by channel, and the codecs of its hot channels.
 
-Topics (every message's MCAP ``log_time`` is the simulated time, ``tick * step`` ns from 0, and its
-``sequence`` is the *epoch*: how many rollbacks the world had gone through when it was produced):
+Times. A message's MCAP ``log_time`` is the run's wall-clock start plus its simulated time:
+``time_origin_ns + tick * step`` ns, where ``time_origin_ns`` (in the ``dynabrain`` metadata) is the
+wall-clock time (ns since 1970, UTC) at which the logger was attached, less the simulated time of that
+tick; its ``publish_time`` is the simulated time itself, ``tick * step`` ns from tick 0; the ``/bus``
+messages also carry ``tick`` and ``time`` (simulated seconds), the events their tick and time. So
+Foxglove shows the run at the date it ran, and the simulated time stays exact. The timestamps inside
+Foxglove messages (poses, scene entities, logs) are log times too, so that Foxglove's transform lookups
+and lifetimes line up with its timeline. A message's ``sequence`` is the *epoch*: how many rollbacks
+the world had gone through when it was produced. Messages are in log-time order in the file (see
+`logs.write`); a log with rollbacks is put in that order when it is closed (`logs.logger`).
+
+Topics, one schema each (what the MCAP spec expects of a topic):
 
 - ``/bus``: the whole signal bus, one protobuf message per tick (`BusCodec`). Its schema is made from
   the bus layout: fields ``tick``, ``epoch``, ``time`` and one field per signal, named after it
   (``core.aa.pos`` is ``core__aa__pos``; its JSON name and a comment give the signal's own name, unit
   and shape), so Foxglove plots ``/bus.core__aa__pos[2]``. A block port whose rows all have names of
   their own is written as those rows, so every bus value is written once. When modules arrive or
-  leave, the new layout gets a new schema and channel on the same topic; a signal keeps its field
-  number for the whole file. The channel's metadata holds the layout (signal -> offset, shape, unit)
-  that turns a message back into the bus array.
+  leave, the new layout is a new schema, so it goes to a topic of its own: layout ``k`` (counted in
+  the log, from 1) on ``/bus/layout<k>`` (`bus_topic`; the first layout stays on ``/bus``, and a
+  layout the world comes back to goes back to its topic). A signal keeps its field number for the
+  whole file, so one layout's schema still decodes another's messages (fields it lacks are skipped).
+  The channel's metadata holds the layout (signal -> offset, shape, unit) that turns a message back
+  into the bus array; a ``layout`` event names the topic of each new layout.
 - ``/tf``: body poses as ``foxglove.FrameTransforms`` (parent ``world``, child the body's name).
 - ``/scene``: the bodies' geometry as ``foxglove.SceneUpdate`` (see `logs.scene`).
-- ``/events``: JSON events (edits, parameter changes, rollbacks, errors, expectation results).
-- ``/discarded/bus``, ``/discarded/tf``, ``/discarded/scene``: ticks a rollback discarded.
+- ``/events``: events (edits, parameter changes, rollbacks, errors, expectation results) as
+  ``foxglove.Log`` (what Foxglove's Log panel shows): ``name`` is the event's kind, ``level`` says how
+  notable it is (`event_level`), ``message`` is the whole event as JSON (``seq``, ``tick``, ``time``,
+  ``epoch``, ``kind``, ``source``, ``detail``), ``timestamp`` its log time. Logs written before kept
+  the same JSON as messages of a JSON schema ``dynabrain.Event``; `logs.read` reads both.
+- ``/discarded/bus`` (and ``/discarded/bus/layout<k>``), ``/discarded/tf``, ``/discarded/scene``: ticks
+  a rollback discarded.
 - ``/imagined/<name>/<branch>/...``: futures the brain imagined and asked to keep (`World.imagine`; a
   batch's branches with ``BatchResult.imagine``, a plan with ``Plan.imagine``), each branch on topics of
   its own, at its own future ticks (the message after tick ``start + k + 1`` at that tick's time), so
   Foxglove plays the prediction beside what happened. ``.../bus``: the signals recorded, one message per
-  tick, a schema of their own (``dynabrain.imagined<n>.Bus``, made as ``/bus``'s is); the channel's
+  tick, a schema of their own (``dynabrain.imagined<n>.Bus``, made as ``/bus``'s is; a later branch of
+  the same name and number with other signals goes to ``.../bus/layout<n>``); the channel's
   metadata gives the layout, ``imagined`` (the name), ``branch`` and ``start_tick``. ``.../tf``: when the
   signals hold a body's ``<core>.<body>.pos`` and ``.quat``, its poses as ``foxglove.FrameTransforms`` in
   a frame of its own, ``imagined/<name>/<branch>/<body>`` (parent ``world``); ``.../scene``: those bodies
@@ -53,16 +72,38 @@ FIRST_SIGNAL_FIELD = 16
 _HEADER_FIELDS = (("tick", 1, 0x09), ("epoch", 2, 0x11), ("time", 3, 0x19))
 HEADER_BYTES = 27
 
-EVENT_SCHEMA = {
-    "title": "dynabrain.Event", "type": "object",
-    "properties": {
-        "seq": {"type": "integer", "description": "event number in the log"},
-        "tick": {"type": "integer"}, "time": {"type": "number", "description": "simulated time, s"},
-        "epoch": {"type": "integer", "description": "rollbacks before this event"},
-        "kind": {"type": "string"}, "source": {"type": "string", "description": "scenario, api or log"},
-        "detail": {"type": "object"},
-    },
-}
+LEVELS = {"debug": 1, "info": 2, "warning": 3, "error": 4}
+"""``foxglove.Log`` levels (its ``Level`` enum)."""
+
+
+def bus_topic(layout: int) -> str:
+    """The topic of bus layout ``layout`` (see the module docstring): one schema per topic."""
+    return TOPIC_BUS if layout == 1 else f"{TOPIC_BUS}/layout{layout}"
+
+
+def bus_family(topic: str) -> str:
+    """``/bus/layout3`` -> ``/bus`` (and ``/discarded/bus/layout3`` -> ``/discarded/bus``): the topic
+    whose ticks a layout's messages share."""
+    head, _, last = topic.rpartition("/")
+    return head if last.startswith("layout") and last[6:].isdigit() and head.endswith(TOPIC_BUS) else topic
+
+
+def event_level(kind: str, detail: dict) -> int:
+    """How notable an event is, as a ``foxglove.Log`` level: errors and failed runs ERROR, rollbacks and
+    failed expectations WARNING, the logger's own bookkeeping (layouts) DEBUG, the rest INFO."""
+    if kind == "error" or (kind == "run_end" and (detail.get("error") or not detail.get("ok", True))):
+        return LEVELS["error"]
+    if kind == "rollback" or (kind == "expect" and not detail.get("passed", True)):
+        return LEVELS["warning"]
+    return LEVELS["debug"] if kind == "layout" else LEVELS["info"]
+
+
+def log_message(time_ns: int, level: int, text: str, name: str) -> bytes:
+    """A ``foxglove.Log`` message (timestamp, level, message, name), encoded."""
+    stamp = b"\x08" + varint(time_ns // 1_000_000_000) + b"\x10" + varint(time_ns % 1_000_000_000)
+    raw, label = text.encode(), name.encode()
+    return (b"\x0a" + varint(len(stamp)) + stamp + b"\x10" + varint(level) + b"\x1a" + varint(len(raw)) + raw
+            + b"\x22" + varint(len(label)) + label)
 
 
 def imagined_frame(name: str, branch: int, body: str) -> str:

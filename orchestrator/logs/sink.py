@@ -6,6 +6,15 @@ into ``/bus``, ``/tf`` and ``/scene`` messages and imagined branches into ``/ima
 writes events and metadata, and hands chunks to the `McapWriter`. Every sink call arrives in the order
 the logger made it.
 
+Log-time order. A batch of rows goes to the writer as one group (`McapWriter.add_group`: its bus,
+pose and scene messages merged by time), with the events and imagined messages whose time has come.
+Those arrive before the rows of their tick (rows wait in the logger for a batch, and an imagined
+branch lies in the future), so the sink holds them until the rows reach their time, then merges them
+in; what is still held when the log finishes is written then, in order. At equal times the run's
+messages come first. Only a rollback (ticks produced again) or a branch imagined from a past tick
+writes messages below the latest log time (`McapWriter.out_of_order` counts them; the logger then
+puts the file in order when it closes).
+
 `ProcessSink` (the default) runs the sink in a child process (``python -m
 dynabrain.orchestrator.logs.sink``; it starts in about 0.15 s, and `attach` waits for it). Rows
 travel through shared memory (each block of rows is a file in ``/dev/shm``, or in the temporary
@@ -23,7 +32,6 @@ this process (``McapLogger(writer="thread")``).
 from __future__ import annotations
 
 import contextlib
-import json
 import mmap
 import os
 import signal
@@ -61,7 +69,6 @@ from .messages import (
 )
 from .schema import (
     DISCARDED,
-    EVENT_SCHEMA,
     IMAGINED,
     TOPIC_BUS,
     TOPIC_EVENTS,
@@ -71,24 +78,39 @@ from .schema import (
     FieldNumbers,
     PoseCodec,
     Slot,
+    bus_topic,
     imagined_frame,
+    log_message,
 )
-from .write import McapWriter
+from .write import McapWriter, Part
 
 START_TIMEOUT_S = 60.0
 """How long the child writer may take to start (it imports numpy; on a busy machine that is slow)."""
 FINISH_TIMEOUT_S = 300.0
-NOTHING_WRITTEN = {"messages": 0, "chunks": 0, "bytes": 0, "writer_cpu_s": 0.0}
 """How long closing waits for a child writer to write what it was handed."""
+NOTHING_WRITTEN = {"messages": 0, "chunks": 0, "bytes": 0, "writer_cpu_s": 0.0, "out_of_order": 0}
+LOG_SCHEMA = "foxglove.Log"
+
+
+class _Held:
+    """Messages of one channel held until the run's rows reach their (simulated) times: ``data`` is
+    (n, length) uint8, the messages from ``at`` on are still held."""
+
+    __slots__ = ("at", "channel", "data", "epochs", "times")
+
+    def __init__(self, channel: int, times: np.ndarray, epochs: np.ndarray, data: np.ndarray):
+        self.channel, self.times, self.epochs, self.data, self.at = channel, times, epochs, data, 0
 
 
 class LogSink:
     """The writing side of a log (see the module docstring): runs where the `McapWriter` is."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
-        self.writer = McapWriter(path, profile="dynabrain", **writer_args)
-        self.dt, self.decimate = dt_ns, decimate
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], origin_ns: int = 0):
+        self.writer = McapWriter(path, **writer_args)  # no profile: dynabrain is no well-known MCAP profile
+        self.dt, self.decimate, self.origin = dt_ns, decimate, origin_ns
+        self.held: list[_Held] = []
+        self.topic_schemas: dict[str, int] = {}  # one schema per topic
         self.poses = PoseCodec(bodies) if bodies is not None else None
         self.descriptors = dict(descriptors)  # Foxglove schema name -> serialized FileDescriptorSet
         self.layouts: dict[int, tuple[BusCodec, np.ndarray, list[str]]] = {}
@@ -113,86 +135,96 @@ class LogSink:
             self.poses.encode(np.zeros((1, len(self.poses.bodies), 3)), np.zeros((1, len(self.poses.bodies), 4)),
                               np.zeros(1, np.int64))
 
-    def event(self, time_ns: int, data: bytes, epoch: int) -> None:
-        self.writer.add_message(self.events_channel(), time_ns, data, epoch)
+    def event(self, time_ns: int, kind: str, level: int, text: str, epoch: int) -> None:
+        """An event, as ``foxglove.Log``: held until the rows reach its time."""
+        data = np.frombuffer(log_message(self.origin + time_ns, level, text, kind), dtype=np.uint8)
+        self._hold(self.events_channel(), np.array([time_ns], np.int64), np.array([epoch], np.int64), data[None, :])
 
     def rows(self, key: int, rows: np.ndarray, extra: np.ndarray | None, first: int, epoch: int,
              discarded: bool, scenes: Sequence[tuple[int, bytes]]) -> None:
-        """Encode rows of consecutive ticks (the first is ``first``; one layout, epoch and fate) into the
-        chunk, in parts that end where the chunk's span of simulated time does (`McapWriter.span_end`), so
-        a tick's bus and pose messages share a chunk."""
-        n, at = len(rows), 0
-        while at < n:
-            end = self.writer.span_end((first + at) * self.dt)
-            k = n - at if end is None else min(n - at, max(1, -(-(end - (first + at) * self.dt) // self.dt)))
-            part = slice(at, at + k)
-            self._rows(key, rows[part], None if extra is None else extra[part], first + at, epoch, discarded,
-                       [(r - at, scene) for r, scene in scenes if at <= r < at + k])
-            at += k
-
-    def _rows(self, key: int, rows: np.ndarray, extra: np.ndarray | None, first: int, epoch: int,
-              discarded: bool, scenes: Sequence[tuple[int, bytes]]) -> None:
+        """Encode rows of consecutive ticks (the first is ``first``; one layout, epoch and fate) into
+        ``/bus``, ``/tf`` and ``/scene`` messages, and write them, with the held messages whose time has
+        come, as one group merged by log time."""
         codec, cols, missing = self.layouts[key]
-        prefix, w, dt = DISCARDED if discarded else "", self.writer, self.dt
+        prefix, dt, origin = DISCARDED if discarded else "", self.dt, self.origin
         n = len(rows)
         ticks = np.arange(first, first + n, dtype=np.int64)
         epochs = np.full(n, epoch, dtype=np.int64)
         t_ns = ticks * dt
+        log = t_ns + origin
 
         def bus(out: np.ndarray, part: slice) -> None:
             codec.encode(rows[part], ticks[part], epochs[part], dt, out=out)
 
-        w.add_encoded(self.bus_channel(codec, prefix), t_ns, epochs, codec.length, bus)
+        parts = [Part(self.bus_channel(codec, prefix), log, epochs, codec.length, bus, t_ns)]
         if self.poses is not None:
             due = np.flatnonzero(ticks % self.decimate == 0)
             if len(due):
                 ext = rows if len(due) == n else rows[due]
                 if missing:
                     ext = np.concatenate([ext, extra[due]], axis=1)
-                pose, times = ext[:, cols], t_ns[due]
+                pose, stamps = ext[:, cols], log[due]
                 poses = self.poses
 
                 def fill(out: np.ndarray, part: slice) -> None:
-                    poses.encode(pose[part, :, :3], pose[part, :, 3:], times[part], out=out)
+                    poses.encode(pose[part, :, :3], pose[part, :, 3:], stamps[part], out=out)
 
-                w.add_encoded(self.proto_channel(prefix + TOPIC_TF, "foxglove.FrameTransforms"), times, epochs[due],
-                              poses.length, fill)
+                parts.append(Part(self.proto_channel(prefix + TOPIC_TF, "foxglove.FrameTransforms"), stamps,
+                                  epochs[due], poses.length, fill, t_ns[due]))
         for row, scene in scenes:
-            w.add_message(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), (first + row) * dt,
-                          scene, epoch)
+            parts.append(_single(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), int(t_ns[row]),
+                                 origin, scene, epoch))
+        self.writer.add_group(parts + self._due(int(t_ns[-1])))
+
+    def _hold(self, channel: int, times: np.ndarray, epochs: np.ndarray, data: np.ndarray) -> None:
+        self.held.append(_Held(channel, times, epochs, data))
+
+    def _due(self, until_ns: int | None) -> list[Part]:
+        """The held messages of simulated times up to ``until_ns`` (None: all), as parts; no longer held."""
+        parts, still = [], []
+        for item in self.held:
+            end = len(item.times) if until_ns is None else int(np.searchsorted(item.times, until_ns, "right"))
+            if end > item.at:
+                at, data = item.at, item.data
+
+                def fill(out: np.ndarray, part: slice, data: np.ndarray = data, at: int = at) -> None:
+                    out[:] = data[at + part.start:at + part.stop]
+
+                times = item.times[at:end]
+                parts.append(Part(item.channel, times + self.origin, item.epochs[at:end], data.shape[1], fill, times))
+                item.at = end
+            if item.at < len(item.times):
+                still.append(item)
+        self.held = still
+        return parts
 
     def imagined(self, name: str, branch: int, start_tick: int, epoch: int, slots: list[tuple[str, tuple, str]],
                  values: np.ndarray, bodies: list[str], cols: np.ndarray, scene: bytes) -> None:
         """A branch the brain imagined (`messages.ImaginedRows`): its signals to ``/imagined/<name>/<branch>/bus``
         (one message per tick, a schema of their own), the poses of its bodies to ``.../tf`` in frames of
-        their own (`schema.imagined_frame`), their drawing to ``.../scene``; at the branch's own ticks."""
+        their own (`schema.imagined_frame`), their drawing to ``.../scene``; at the branch's own ticks,
+        held until the run's rows reach them (see the module docstring)."""
         codec = self._imagined_codec(slots)
-        prefix, w, dt = f"{IMAGINED}/{name}/{branch}", self.writer, self.dt
+        prefix, dt = f"{IMAGINED}/{name}/{branch}", self.dt
         n = len(values)
         ticks = np.arange(start_tick + 1, start_tick + 1 + n, dtype=np.int64)
         epochs = np.full(n, epoch, dtype=np.int64)
         t_ns = ticks * dt
         rows = np.ascontiguousarray(values, dtype=np.float64)
         meta = {**codec.metadata(), "imagined": name, "branch": str(branch), "start_tick": str(start_tick)}
-
-        def bus(out: np.ndarray, part: slice) -> None:
-            codec.encode(rows[part], ticks[part], epochs[part], dt, out=out)
-
-        w.add_encoded(self.imagined_channel(prefix + TOPIC_BUS, codec, meta), t_ns, epochs, codec.length, bus)
+        self._hold(self.imagined_channel(prefix + TOPIC_BUS, codec, meta), t_ns, epochs,
+                   codec.encode(rows, ticks, epochs, dt).copy())
         if bodies:
             frames = tuple(imagined_frame(name, branch, b) for b in bodies)
             poses = self.imagined_poses.get(frames)
             if poses is None:
                 poses = self.imagined_poses[frames] = PoseCodec(frames)
             pose = rows[:, np.asarray(cols, dtype=np.intp)]
-
-            def fill(out: np.ndarray, part: slice) -> None:
-                poses.encode(pose[part, :, :3], pose[part, :, 3:], t_ns[part], out=out)
-
-            w.add_encoded(self.proto_channel(prefix + TOPIC_TF, "foxglove.FrameTransforms"), t_ns, epochs,
-                          poses.length, fill)
+            self._hold(self.proto_channel(prefix + TOPIC_TF, "foxglove.FrameTransforms"), t_ns, epochs,
+                       poses.encode(pose[:, :, :3], pose[:, :, 3:], t_ns + self.origin).copy())
         if scene:
-            w.add_message(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), int(t_ns[0]), scene, epoch)
+            self._hold(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), t_ns[:1], epochs[:1],
+                       np.frombuffer(scene, dtype=np.uint8)[None, :])
 
     def _imagined_codec(self, slots: list[tuple[str, tuple, str]]) -> BusCodec:
         key = tuple((n, tuple(sh), u) for n, sh, u in slots)
@@ -216,8 +248,10 @@ class LogSink:
     def finish(self) -> dict[str, float]:
         """Write the summary and footer; what was written."""
         w = self.writer
+        w.call(lambda: w.add_group(self._due(None)))  # after the jobs handed over before (`ThreadSink`)
         w.finish()
-        return {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written, "writer_cpu_s": w.thread_cpu_s}
+        return {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written, "writer_cpu_s": w.thread_cpu_s,
+                "out_of_order": w.out_of_order}
 
     # -- channels ---------------------------------------------------------------------------------------
     def _channel(self, topic: str, make: Callable[[], int], key: Hashable = 0) -> int:
@@ -226,41 +260,59 @@ class LogSink:
             cid = self.channels[(topic, key)] = make()
         return cid
 
+    def _add_channel(self, topic: str, sid: int, meta: Mapping[str, str] | None = None) -> int:
+        """A channel on ``topic`` with schema ``sid``: a topic keeps one schema (a second one is a bug)."""
+        known = self.topic_schemas.setdefault(topic, sid)
+        if known != sid:
+            raise DynabrainError(f"the log writer put two schemas on topic {topic} ({known} and {sid})")
+        return self.writer.add_channel(topic, "protobuf", sid, meta)
+
+    def _schema(self, key: Hashable, name: str, data: Callable[[], bytes]) -> int:
+        sid = self.schema_ids.get(key)
+        if sid is None:
+            sid = self.schema_ids[key] = self.writer.add_schema(name, "protobuf", data())
+        return sid
+
     def events_channel(self) -> int:
         def make() -> int:
-            sid = self.writer.add_schema("dynabrain.Event", "jsonschema", json.dumps(EVENT_SCHEMA).encode())
-            return self.writer.add_channel(TOPIC_EVENTS, "json", sid)
+            return self._add_channel(TOPIC_EVENTS, self._schema(LOG_SCHEMA, LOG_SCHEMA,
+                                                                lambda: self.descriptors[LOG_SCHEMA]))
 
         return self._channel(TOPIC_EVENTS, make)
 
     def bus_channel(self, codec: BusCodec, prefix: str) -> int:
-        def make() -> int:
-            sid = self.schema_ids.get(codec.key)
-            if sid is None:
-                sid = self.schema_ids[codec.key] = self.writer.add_schema(codec.schema_name, "protobuf",
-                                                                         codec.descriptor())
-            return self.writer.add_channel(prefix + TOPIC_BUS, "protobuf", sid, codec.metadata())
+        topic = prefix + bus_topic(codec.key)
 
-        return self._channel(prefix + TOPIC_BUS, make, codec.key)
+        def make() -> int:
+            return self._add_channel(topic, self._schema(codec.key, codec.schema_name, codec.descriptor),
+                                     codec.metadata())
+
+        return self._channel(topic, make, codec.key)
 
     def imagined_channel(self, topic: str, codec: BusCodec, meta: dict[str, str]) -> int:
+        sid = self._schema(("imagined", codec.key), codec.schema_name, codec.descriptor)
+        if self.topic_schemas.get(topic, sid) != sid:  # these signals differ from the first branch's here
+            topic = f"{topic}/layout{codec.key}"
+
         def make() -> int:
-            sid = self.schema_ids.get(("imagined", codec.key))
-            if sid is None:
-                sid = self.schema_ids[("imagined", codec.key)] = self.writer.add_schema(codec.schema_name, "protobuf",
-                                                                                       codec.descriptor())
-            return self.writer.add_channel(topic, "protobuf", sid, meta)
+            return self._add_channel(topic, sid, meta)
 
         return self._channel(topic, make, ("imagined", codec.key, meta["start_tick"]))
 
     def proto_channel(self, topic: str, schema: str) -> int:
         def make() -> int:
-            sid = self.schema_ids.get(schema)
-            if sid is None:
-                sid = self.schema_ids[schema] = self.writer.add_schema(schema, "protobuf", self.descriptors[schema])
-            return self.writer.add_channel(topic, "protobuf", sid)
+            return self._add_channel(topic, self._schema(schema, schema, lambda: self.descriptors[schema]))
 
         return self._channel(topic, make)
+
+
+def _single(channel: int, time_ns: int, origin_ns: int, data: bytes, epoch: int) -> Part:
+    """One message as a `Part`, at simulated time ``time_ns``."""
+    def fill(out: np.ndarray, part: slice) -> None:
+        out[0] = np.frombuffer(data, dtype=np.uint8)
+
+    return Part(channel, np.array([origin_ns + time_ns], np.uint64), np.array([epoch]), len(data), fill,
+                np.array([time_ns], np.uint64))
 
 
 _CALLS: dict[type, Callable[..., None]] = {Metadata: LogSink.metadata, Layout: LogSink.layout, Event: LogSink.event,
@@ -365,8 +417,8 @@ class ThreadSink:
     """The sink on the writer's thread of this process."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
-        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], origin_ns: int = 0):
+        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors, origin_ns)
         self._writer = self._sink.writer
         self._stats: dict[str, float] = {}
 
@@ -419,14 +471,14 @@ class ThreadSink:
     def stats(self) -> dict[str, float]:
         w = self._writer
         return self._stats or {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written,
-                               "writer_cpu_s": w.thread_cpu_s}
+                               "writer_cpu_s": w.thread_cpu_s, "out_of_order": w.out_of_order}
 
 
 class ProcessSink:
     """The sink in a child process (see the module docstring)."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], origin_ns: int = 0):
         try:  # refuse a path that cannot be written here and now, not at the child's first write
             os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
         except OSError as exc:
@@ -444,7 +496,7 @@ class ProcessSink:
         self._stats: dict[str, float] = {}
         try:
             self._send(Open(path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
-                            dict(descriptors)))
+                            dict(descriptors), origin_ns))
             reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
             if type(reply) is not Ready:
                 raise DynabrainError(_reason(reply))

@@ -119,7 +119,7 @@ def rebuild(info: RunInfo, log_path: str) -> Any:
 class _Replay:
     def __init__(self, world: Any, index: LogIndex, path: str, base_dir: str):
         self.world, self.view, self.index, self.base_dir = world, WorldView(world), index, base_dir
-        self._rows: Iterator = iter_bus(path, index)
+        self._rows: Iterator = iter_bus(path, index, produced=True)
         self._peeked: BusRow | None = None
         self.epoch = self.compared = self.stepped = 0
         self._layout_ok: tuple[int, int] | None = None

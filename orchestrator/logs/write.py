@@ -12,6 +12,16 @@ log about 620 MB/s for a 2.38 ratio, where level 1 gives 520 MB/s for 2.40 and l
 A caller can hand that thread whole jobs (`call`: encode a batch and add it, for instance): every
 writer call made inside a job runs there, in order, and its chunks are compressed there too.
 
+Order. Messages go into the file in log-time order, within and across chunks, as the MCAP spec
+recommends and strict readers (``mcap doctor --strict-message-order``) require: `add_group` takes the
+batches of several channels (a run's bus, poses, scenes and events over the same ticks), merges them
+by log time (stable: at equal times, in the order the parts are given) and writes them in that order,
+finishing chunks between two messages. Each part is encoded where it lands when its messages are
+equally spaced there (a strided view into the chunk: the usual case), else into scratch memory and
+copied run by run. A message whose log time is below one already written is still written (a caller
+that rolls time back, such as a world's rollback); `out_of_order` counts them, so that the caller can
+put the file in order afterwards (`logs.recover.rewrite`).
+
 Crash safety. Bytes go to the file with ``os.write`` (no user-space buffer), one chunk at a time, so a
 process killed with SIGKILL leaves every chunk that was written. A chunk is finished when it holds
 ``chunk_bytes`` of records, when its messages would span ``chunk_ns`` of log time (simulated time, in
@@ -34,7 +44,8 @@ import struct
 import threading
 import time
 import zlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 import zstandard
@@ -73,6 +84,19 @@ def _batch_dtype(length: int) -> np.dtype:
     return np.dtype({"names": ["op", "len", "ch", "seq", "log", "pub"],
                      "formats": ["u1", "<u8", "<u2", "<u4", "<u8", "<u8"],
                      "offsets": [0, 1, 9, 11, 15, 23], "itemsize": 31 + length})
+
+
+class Part(NamedTuple):
+    """Messages of one channel for `McapWriter.add_group`, all of ``length`` bytes, in log-time order:
+    ``fill(out, part)`` writes the messages ``part`` (a slice of this part's messages) into ``out``, an
+    (k, length) uint8 array whose rows are contiguous. ``publish_times`` default to the log times."""
+
+    channel_id: int
+    log_times: np.ndarray
+    sequences: np.ndarray
+    length: int
+    fill: Callable[[np.ndarray, slice], None]
+    publish_times: np.ndarray | None = None
 
 
 class _Chunk:
@@ -133,6 +157,9 @@ class McapWriter:
         self._metadata_indexes: list[bytes] = []
         self._dtypes: dict[int, np.dtype] = {}
         self.messages = self.chunks = 0
+        self.out_of_order = 0
+        """Messages written with a log time below one written before them (see the module docstring)."""
+        self._last_time = 0
         self.thread_cpu_s = 0.0
         """CPU time the writing thread has spent (compressing and writing)."""
         self._t_min: int | None = None
@@ -168,7 +195,7 @@ class McapWriter:
         sid = schema_id if schema_id is not None else len(self._schemas) + 1
         rec = record(OP_SCHEMA, struct.pack("<H", sid) + pack_str(name) + pack_str(encoding)
                      + struct.pack("<I", len(data)) + data)
-        self._schemas[sid] = rec  # into each chunk that uses it (`_open`) and into the summary
+        self._schemas[sid] = rec  # into each chunk that uses it (`_declare`) and into the summary
         return sid
 
     def add_channel(self, topic: str, encoding: str, schema_id: int, metadata: Mapping[str, str] | None = None,
@@ -176,7 +203,7 @@ class McapWriter:
         cid = channel_id if channel_id is not None else len(self._channels) + 1
         rec = record(OP_CHANNEL, struct.pack("<HH", cid, schema_id) + pack_str(topic) + pack_str(encoding)
                      + pack_map(metadata or {}))
-        self._channels[cid] = rec  # into each chunk that uses it (`_open`) and into the summary
+        self._channels[cid] = rec  # into each chunk that uses it (`_declare`) and into the summary
         self._schema_of[cid] = schema_id
         self._counts.setdefault(cid, 0)
         return cid
@@ -193,87 +220,137 @@ class McapWriter:
         self._submit(job)
 
     # -- messages -------------------------------------------------------------------------------------
-    def add_message(self, channel_id: int, log_time: int, data: bytes, sequence: int = 0) -> None:
+    def add_message(self, channel_id: int, log_time: int, data: bytes, sequence: int = 0,
+                    publish_time: int | None = None) -> None:
         self._within_span(log_time)
-        offset = self._open(channel_id, 31 + len(data))
-        self._chunk.put(MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, log_time)
-                        + data)
+        self._ordered(log_time, 1)
+        offset = self._declare([channel_id], 31 + len(data))
+        pub = log_time if publish_time is None else publish_time
+        self._chunk.put(MESSAGE_HEADER.pack(OP_MESSAGE, 22 + len(data), channel_id, sequence, log_time, pub) + data)
         self._indexed(channel_id, np.array([log_time], dtype=np.uint64), np.array([offset], dtype=np.uint64))
 
-    def add_messages(self, channel_id: int, log_times: np.ndarray, sequences: np.ndarray, data: np.ndarray) -> None:
+    def add_messages(self, channel_id: int, log_times: np.ndarray, sequences: np.ndarray, data: np.ndarray,
+                     publish_times: np.ndarray | None = None) -> None:
         """A batch of messages of one channel, all of the same size: ``data`` is (n, length) uint8."""
         def copy(out: np.ndarray, part: slice) -> None:
             out[:] = data[part]
 
-        self.add_encoded(channel_id, log_times, sequences, data.shape[1], copy)
+        self.add_encoded(channel_id, log_times, sequences, data.shape[1], copy, publish_times)
 
     def add_encoded(self, channel_id: int, log_times: np.ndarray, sequences: np.ndarray, length: int,
-                    fill: Callable[[np.ndarray, slice], None]) -> None:
+                    fill: Callable[[np.ndarray, slice], None], publish_times: np.ndarray | None = None) -> None:
         """A batch of ``len(log_times)`` messages of ``length`` bytes, encoded in place: ``fill(out, part)``
         writes the messages ``part`` of the batch into ``out``, a (k, length) view into the chunk."""
-        n, size = len(log_times), 31 + length
-        times = np.asarray(log_times, dtype=np.uint64)
-        sequences = np.asarray(sequences)
-        dtype = self._dtypes.get(length)
-        if dtype is None:
-            dtype = self._dtypes[length] = _batch_dtype(length)
-        done = 0
+        self.add_group([Part(channel_id, log_times, sequences, length, fill, publish_times)])
+
+    def add_group(self, parts: Sequence[Part]) -> None:
+        """Batches of several channels (`Part`, each in log-time order), merged by log time (at equal
+        times, in the order of ``parts``) and written in that order, chunks finished between messages."""
+        parts = [p for p in parts if len(p.log_times)]
+        if not parts:
+            return
+        merged = _Merge(parts)
+        done, n = 0, merged.n
+        self._ordered(int(merged.times[0]), int(np.searchsorted(merged.times, self._last_time, "left")))
+        channels = list(dict.fromkeys(p.channel_id for p in parts))
         while done < n:
-            self._within_span(int(times[done]))
-            start = self._open(channel_id, size)
-            fits = max(1, (self.chunk_bytes - start) // size)  # a chunk holds at most chunk_bytes (or one message)
-            k = self._span_limit(times, done, min(n - done, self._chunk.room() // size, fits))
-            region = self._chunk.buf[start:start + k * size]
-            recs = region.view(dtype)
-            recs["op"], recs["len"], recs["ch"] = OP_MESSAGE, 22 + length, channel_id
-            part = slice(done, done + k)
-            recs["seq"], recs["log"], recs["pub"] = sequences[part], times[part], times[part]
-            fill(region.reshape(k, size)[:, 31:], part)
-            self._chunk.pos += k * size
-            self._indexed(channel_id, times[part], start + np.arange(k, dtype=np.uint64) * np.uint64(size))
+            self._within_span(int(merged.times[done]))
+            start = self._declare(channels, int(merged.sizes[done]))
+            chunk = self._chunk
+            cap = max(min(chunk.room(), self.chunk_bytes - start), int(merged.sizes[done]))
+            k = max(1, int(np.searchsorted(merged.ends, merged.ends[done] - merged.sizes[done] + cap, "right")) - done)
+            if self.chunk_ns is not None and k > 1:  # the chunk spans less than chunk_ns of log time
+                t_min = chunk.t_min if chunk.messages else int(merged.times[done])
+                k = max(1, min(k, int(np.searchsorted(merged.times[done:done + k], t_min + self.chunk_ns, "left"))))
+            self._place(merged, done, done + k, start)
             done += k
+            if chunk.pos >= self.chunk_bytes or time.monotonic() - chunk.born >= self.flush_s:
+                self.flush()
+
+    def _ordered(self, log_time: int, behind: int) -> None:
+        """Count the messages of a batch starting at ``log_time`` that go below the latest log time."""
+        if log_time < self._last_time:
+            self.out_of_order += max(behind, 1)
+
+    def _declare(self, channels: list[int], first: int) -> int:
+        """Put the records of ``channels`` into the chunk (those it lacks), with room after them for a
+        message of ``first`` bytes (a fresh or larger chunk when needed); where the messages start."""
+        decl = self._declarations(channels)
+        if self._chunk.room() < len(decl) + first:
+            self.flush()
+            decl = self._declarations(channels)
+            if self._chunk.room() < len(decl) + first:  # a record larger than a chunk buffer: a larger buffer
+                old = self._chunk
+                self._chunk = _Chunk(old.pos + len(decl) + first + self.chunk_bytes)
+                self._chunk.put(old.buf[:old.pos].tobytes())
+                self._chunk.declared, self._chunk.schemas = old.declared, old.schemas
+                self._made += 1
+        chunk = self._chunk
+        if decl:
+            chunk.put(decl)
+            for cid in channels:
+                chunk.declared.add(cid)
+                chunk.schemas.add(self._schema_of.get(cid, 0))
+        return chunk.pos
+
+    def _declarations(self, channels: list[int]) -> bytes:
+        chunk, out, schemas = self._chunk, [], set(self._chunk.schemas)
+        for cid in channels:
+            if cid in chunk.declared:
+                continue
+            channel = self._channels.get(cid)
+            if channel is None:
+                raise DynabrainError(f"writing the log {self.path}: a message on channel {cid}, which was never "
+                                     "added")
+            sid = self._schema_of[cid]
+            if sid not in schemas:
+                out.append(self._schemas.get(sid, b""))
+                schemas.add(sid)
+            out.append(channel)
+        return b"".join(out)
+
+    def _place(self, merged: _Merge, lo: int, hi: int, start: int) -> None:
+        """Write the merged messages ``[lo, hi)`` from ``start`` in the chunk (they fit), part by part."""
+        chunk = self._chunk
+        buf = chunk.buf
+        base = merged.ends[lo] - merged.sizes[lo]
+        for p, (a, b) in merged.ranges(lo, hi):
+            part = merged.parts[p]
+            size = 31 + part.length
+            dest = (merged.ends[merged.positions[p][a:b]] - size - base + start).astype(np.int64)
+            dtype = self._dtypes.get(part.length)
+            if dtype is None:
+                dtype = self._dtypes[part.length] = _batch_dtype(part.length)
+            times = np.asarray(part.log_times[a:b], dtype=np.uint64)
+            pubs = times if part.publish_times is None else part.publish_times[a:b]
+            m = b - a
+            step = int(dest[1] - dest[0]) if m > 1 else size
+            in_place = m == 1 or bool(np.all(np.diff(dest) == step))
+            if in_place:  # equally spaced (the usual case): encoded where they land, through a strided view
+                recs = np.ndarray((m,), dtype, buffer=buf, offset=int(dest[0]), strides=(step,))
+                out = np.ndarray((m, part.length), np.uint8, buffer=buf, offset=int(dest[0]) + 31, strides=(step, 1))
+            else:
+                scratch = np.empty((m, size), dtype=np.uint8)
+                recs, out = scratch.view(dtype)[:, 0], scratch[:, 31:]
+            recs["op"], recs["len"], recs["ch"] = OP_MESSAGE, 22 + part.length, part.channel_id
+            recs["seq"], recs["log"], recs["pub"] = part.sequences[a:b], times, pubs
+            part.fill(out, slice(a, b))
+            if not in_place:
+                _scatter(buf, scratch, dest)
+            chunk.timed(part.channel_id, times, dest.astype(np.uint64))
+            self._counts[part.channel_id] = self._counts.get(part.channel_id, 0) + m
+            self.messages += m
+        chunk.pos = start + int(merged.ends[hi - 1] - base)
+        self._last_time = max(self._last_time, int(merged.times[hi - 1]))
 
     def _indexed(self, channel_id: int, times: np.ndarray, offsets: np.ndarray) -> None:
         self._chunk.timed(channel_id, times, offsets)
         self._counts[channel_id] = self._counts.get(channel_id, 0) + len(times)
         self.messages += len(times)
+        self._last_time = max(self._last_time, int(times.max()))
         chunk = self._chunk
         if chunk.pos >= self.chunk_bytes or time.monotonic() - chunk.born >= self.flush_s:
             self.flush()
-
-    def _open(self, channel_id: int, size: int) -> int:
-        """Offset where a message of ``size`` bytes of ``channel_id`` goes: in this chunk or a fresh
-        one, after the records of its channel (and schema) when the chunk has none yet."""
-        decl = self._declaration(channel_id)
-        if self._chunk.room() < len(decl) + size:
-            self.flush()
-            decl = self._declaration(channel_id)
-            if self._chunk.room() < len(decl) + size:  # a record larger than a chunk buffer: a larger buffer
-                old = self._chunk
-                self._chunk = _Chunk(old.pos + len(decl) + size + self.chunk_bytes)
-                self._chunk.put(old.buf[:old.pos].tobytes())
-                self._chunk.declared, self._chunk.schemas = old.declared, old.schemas
-                self._made += 1
-        if decl:
-            chunk = self._chunk
-            chunk.put(decl)
-            chunk.declared.add(channel_id)
-            chunk.schemas.add(self._schema_of.get(channel_id, 0))
-        return self._chunk.pos
-
-    def _declaration(self, channel_id: int) -> bytes:
-        """The records this chunk needs before a message of ``channel_id``: none, or its channel's (after
-        its schema's, when the chunk lacks that too)."""
-        chunk = self._chunk
-        if channel_id in chunk.declared:
-            return b""
-        channel = self._channels.get(channel_id)
-        if channel is None:
-            raise DynabrainError(f"writing the log {self.path}: a message on channel {channel_id}, which was never "
-                                 "added")
-        sid = self._schema_of[channel_id]
-        schema = self._schemas.get(sid, b"") if sid not in chunk.schemas else b""
-        return schema + channel
 
     def span_end(self, log_time: int) -> int | None:
         """The log time from which messages no longer fit in the chunk being filled, for a batch whose
@@ -290,23 +367,6 @@ class McapWriter:
         if self.chunk_ns is not None and chunk.messages and (max(chunk.t_max, log_time)
                                                              - min(chunk.t_min, log_time) >= self.chunk_ns):
             self.flush()
-
-    def _span_limit(self, times: np.ndarray, done: int, k: int) -> int:
-        """How many of the ``k`` messages from ``done`` on this chunk takes and still spans less than
-        ``chunk_ns`` of log time (at least one: `_within_span` made room for the first)."""
-        chunk, span = self._chunk, self.chunk_ns
-        if span is None or k <= 1:
-            return k
-        part = times[done:done + k].astype(np.int64)
-        lo, hi = int(part.min()), int(part.max())
-        if chunk.messages:
-            lo, hi = min(lo, chunk.t_min), max(hi, chunk.t_max)
-        if hi - lo < span:
-            return k
-        low, high = np.minimum.accumulate(part), np.maximum.accumulate(part)
-        if chunk.messages:
-            low, high = np.minimum(low, chunk.t_min), np.maximum(high, chunk.t_max)
-        return max(1, int(np.argmax(high - low >= span)))
 
     # -- chunks ---------------------------------------------------------------------------------------
     def flush(self) -> None:
@@ -450,3 +510,50 @@ class McapWriter:
     @property
     def bytes_written(self) -> int:
         return self._pos
+
+
+class _Merge:
+    """Parts merged by log time (stable): per merged message its time, size and end offset (sizes
+    summed), and per part where its messages went."""
+
+    def __init__(self, parts: Sequence[Part]):
+        self.parts = parts
+        counts = [len(p.log_times) for p in parts]
+        times = np.concatenate([np.asarray(p.log_times, dtype=np.uint64) for p in parts])
+        sizes = np.concatenate([np.full(c, 31 + p.length, dtype=np.int64) for c, p in zip(counts, parts, strict=True)])
+        order = np.argsort(times, kind="stable") if len(parts) > 1 else np.arange(len(times))
+        self.n = len(times)
+        self.times, self.sizes = times[order], sizes[order]
+        self.ends = np.cumsum(self.sizes)
+        where = np.empty(self.n, dtype=np.int64)
+        where[order] = np.arange(self.n)
+        bounds = np.concatenate([[0], np.cumsum(counts)])
+        self.positions = [where[bounds[i]:bounds[i + 1]] for i in range(len(parts))]
+        """Per part, the merged position of each of its messages (increasing: a part keeps its order)."""
+
+    def ranges(self, lo: int, hi: int) -> list[tuple[int, tuple[int, int]]]:
+        """Per part with messages among the merged ``[lo, hi)``: (part, its messages' range)."""
+        out = []
+        for p, pos in enumerate(self.positions):
+            a, b = int(np.searchsorted(pos, lo)), int(np.searchsorted(pos, hi))
+            if b > a:
+                out.append((p, (a, b)))
+        return out
+
+
+def _scatter(buf: np.ndarray, records: np.ndarray, dest: np.ndarray) -> None:
+    """Copy (m, size) records to the offsets ``dest`` of ``buf``, one strided copy per run of equally
+    spaced offsets."""
+    m, size = records.shape
+    gaps = np.diff(dest)
+    at = 0
+    while at < m:
+        end = at + 1
+        if end < m:
+            step = gaps[at]
+            change = np.flatnonzero(gaps[at:] != step)
+            end = at + 1 + (int(change[0]) if len(change) else m - 1 - at)
+        step = int(gaps[at]) if end - at > 1 else size
+        view = np.ndarray((end - at, size), np.uint8, buffer=buf, offset=int(dest[at]), strides=(step, 1))
+        view[...] = records[at:end]
+        at = end
