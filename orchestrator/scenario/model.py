@@ -345,7 +345,8 @@ class _Builder:
             world.add_module(core)
         except DynabrainError as exc:
             self.report(("core",) if "parameter" in str(exc) else ("scene",), str(exc))
-        except Exception as exc:  # the engine's own library refusing the scene (a model file it cannot read)
+        except (ValueError, ArithmeticError) as exc:  # the engine's library refusing the scene (a model file
+            # it cannot read: MuJoCo's XML errors are ValueErrors); anything else is a bug, and shows as one
             self.report(("scene",), f"the {cfg.core} core cannot load the scene: {type(exc).__name__}: {exc}")
 
     def _core_params(self, cls: type) -> dict[str, Any]:
