@@ -14,7 +14,10 @@ a light one apart; heavy bodies then bounce off each other a little more than th
 says). Static items are rigid (`RIGID`); static spheres damp at that cap. ``zeta`` comes from the
 coefficient of restitution (`exudyn.calibrate`); the damper may pull until the contact separates
 (``keepContactWhilePenetrating``). Friction is Coulomb's,
-regularised below ``friction_zone`` m/s (the pairs' coefficient is the larger of the two bodies').
+regularised below ``friction_zone`` m/s (a body with coefficients of its own gives its friction to its
+contacts with bodies without; two bodies with their own take the larger). A body's own restitution sets
+the damping of its spheres: it rules its contacts with static triangles (floors, frozen bodies) and
+with moving triangles its spheres touch (two spheres: both dampers act, in parallel).
 Triangle stiffness cannot change after a system is built: the core builds it again when the
 contact frequency changes.
 
@@ -63,8 +66,8 @@ class ContactSets:
     """The general contacts of a structure and the handles needed to change their parameters."""
 
     sets: list = field(default_factory=list)
-    handles: list[tuple[object, int, float, int, bool]] = field(default_factory=list)
-    """(general contact, sphere index in it, mass (-1: static), support, damping capped) of every sphere."""
+    handles: list[tuple[object, int, float, int, bool, str]] = field(default_factory=list)
+    """(general contact, sphere index in it, mass (-1: static), support, damping capped, body) of every sphere."""
 
 
 def plan_sets(items: list[BodyItems], excluded: dict[str, set[str]],
@@ -139,7 +142,7 @@ def _contact(mbs, sphere_items: list[BodyItems], mesh_items: list[BodyItems], sp
         for marker, radius in it.spheres:
             index = gc.AddSphereWithMarker(marker, radius=float(radius), contactStiffness=RIGID if it.static else 1.0,
                                            contactDamping=0.0, frictionMaterialIndex=it.material)
-            handles.append((gc, index, -1.0 if it.static else it.mass, it.support, capped))
+            handles.append((gc, index, -1.0 if it.static else it.mass, it.support, capped, it.body))
     _search_tree(gc, box, _count(sphere_items) + sum(len(it.mesh[2]) for it in mesh_items))
     return gc
 
@@ -158,24 +161,30 @@ def _search_tree(gc, box: tuple[np.ndarray, np.ndarray], n_items: int) -> None:
 
 
 def apply(contacts: ContactSets, *, wn: float, zeta: float, friction_zone: float, pairings: np.ndarray,
-          step: float, lightest: float) -> None:
-    """Set stiffness, damping and friction of every contact sphere from the core's parameters."""
+          step: float, lightest: float, zetas: dict[str, float] | None = None) -> None:
+    """Set stiffness, damping and friction of every contact sphere from the core's parameters;
+    ``zetas``: the damping ratio of the bodies with a restitution of their own (`exudyn.calibrate`)."""
+    zetas = zetas or {}
     for gc in contacts.sets:
         gc.SetFrictionPairings(pairings)
         gc.frictionProportionalZone = float(friction_zone)
     cap = DAMPING_CAP * lightest / step
-    for gc, index, mass, support, capped in contacts.handles:
+    for gc, index, mass, support, capped, body in contacts.handles:
         if mass < 0:  # a static sphere: rigid, damped at the cap (the moving triangles it meets have none)
             gc.SetSphereMarkerBased(index, contactDamping=cap)
             continue
         share = mass / max(support, 1)
-        damping = 2.0 * zeta * wn * share
+        damping = 2.0 * zetas.get(body, zeta) * wn * share
         gc.SetSphereMarkerBased(index, contactStiffness=share * wn * wn,
                                 contactDamping=min(damping, cap) if capped else damping)
 
 
 def pairings(base: float, materials: list[float | None]) -> np.ndarray:
-    """Friction coefficient of each pair of materials: the larger of the two (material 0 is ``base``)."""
+    """Friction coefficient of each pair of materials (material 0: the bodies with no coefficients of their
+    own, ``base``; the others a body's own friction, None: ``base``): a body's own material rules its
+    contacts with the others; between two bodies with their own, the larger."""
     mu = np.array([base if m is None else m for m in materials], dtype=float)
-    return np.maximum.outer(mu, mu)
+    out = np.maximum.outer(mu, mu)
+    out[0, :], out[:, 0] = mu, mu
+    return out
 

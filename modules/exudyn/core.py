@@ -46,11 +46,21 @@ import copy
 import math
 from collections import OrderedDict
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from dynabrain.orchestrator.kernel.core import NO_EDITS, BodyInfo, EditedCore, Edits, SceneSpec, body_inputs
+from dynabrain.orchestrator.kernel.core import (
+    NO_EDITS,
+    BodyInfo,
+    BodySpec,
+    EditedCore,
+    Edits,
+    SceneSpec,
+    body_inputs,
+    scene_bodies,
+)
 from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Param, Port, SetupContext
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
@@ -60,7 +70,7 @@ from . import geometry as geo
 from .calibrate import zeta_for
 from .plan import FrozenObject, make_plan, to7
 from .system import INTEGRATORS, Options, Start, System
-from .topology import analyse, fail
+from .topology import Topology, analyse, fail
 
 CACHE_SIZE = 8
 DEFAULT_PERIOD_S = 0.002
@@ -74,6 +84,19 @@ ZONE_PER_STEP = 4.0
 MIN_ZONE = 0.01
 """Smallest default friction regularisation velocity (m/s): impacts make the friction force jitter by up
 to friction * (impact force / mass) * step a step, and a wider zone calms it (at the price of creep)."""
+
+
+@dataclass(frozen=True, eq=False)
+class TopView:
+    """The bodies of one scene key (`Edits.scene_key`: bodies added and removed at run time) as the core
+    shows them: the topology, the rows of the bodies and the ports."""
+
+    top: Topology
+    rows: dict[str, int]
+    ports_in: tuple[Port, ...]
+    ports_out: tuple[Port, ...]
+    out_names: frozenset[str]
+    """The outputs' names: how `ExudynCore.bind` knows the topology of a binding."""
 
 
 class ExudynCore(EditedCore):
@@ -96,22 +119,46 @@ class ExudynCore(EditedCore):
         Param("link_contacts", True, doc="links of joint chains touch things (off: 3-4 times cheaper chains)"),
     )
 
+    MADE_JOINTS = ("weld", "hinge", "slider", "ball")
+
     def __init__(self, name: str, scene: SceneSpec, *, scenario_dir: str | None = None, **params: Any):
         super().__init__(name, scene, **params)
         for key, value in self._param_values.items():
             self._check_param(key, value)
         self._scenario_dir = scenario_dir
         self._period = DEFAULT_PERIOD_S
-        self._top = analyse(name, scene)
-        self._rows = {b: i for i, b in enumerate(self._top.bodies)}
-        self._cache: OrderedDict[tuple[Edits, float], System] = OrderedDict()
+        self._tops: dict[tuple, TopView] = {}  # scene key -> its topology and ports (never dropped: see bind)
+        self._by_ports: dict[frozenset[str], TopView] = {}  # the same, by the names of its outputs
+        self._cache: OrderedDict[tuple, System] = OrderedDict()
         self._edits = NO_EDITS
-        self._init_state()
+        self._materials_of: tuple | None = None  # (key, `_own_materials`) of the last edits asked
+        self._use_top(self._top_view(NO_EDITS))
         self._s = self._structure(NO_EDITS, Start())
-        self._ports_in, self._ports_out = self._make_ports()
         self._unbind()
         self._apply_params()
         self._write_all()
+
+    def _top_view(self, edits: Edits) -> TopView:
+        """The topology and ports of the bodies of ``edits`` (added and removed: `Edits.scene_key`),
+        made once per scene key."""
+        key = edits.scene_key()
+        view = self._tops.get(key)
+        if view is None:
+            scene = self.scene if key == ((), ()) else SceneSpec(bodies=scene_bodies(self.scene, key),
+                                                                 options=self.scene.options)
+            top = analyse(self.name, scene)
+            ports_in, ports_out = self._make_ports(top)
+            view = TopView(top, {b: i for i, b in enumerate(top.bodies)}, ports_in, ports_out,
+                           frozenset(p.name for p in ports_out))
+            self._tops[key] = view
+            self._by_ports.setdefault(view.out_names, view)
+        return view
+
+    def _use_top(self, view: TopView) -> None:
+        """Make ``view`` the topology the core's ports, rows and output arrays follow."""
+        self._view, self._top, self._rows = view, view.top, view.rows
+        self._ports_in, self._ports_out = view.ports_in, view.ports_out
+        self._init_state()
 
     def _init_state(self) -> None:
         n, nj = len(self._top.bodies), len(self._top.qjoints)
@@ -120,8 +167,9 @@ class ExudynCore(EditedCore):
         self._jq, self._jqd = np.zeros(nj), np.zeros(nj)
 
     # -- ports ------------------------------------------------------------------------------------------------
-    def _make_ports(self) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
-        top, outs, ins = self._top, [], []
+    @staticmethod
+    def _make_ports(top: Topology) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
+        outs, ins = [], []
         for block, q, n, unit in (("body_pos", "pos", 3, "m"), ("body_quat", "quat", 4, "1"),
                                   ("body_linvel", "linvel", 3, "m/s"), ("body_angvel", "angvel", 3, "rad/s")):
             outs.append(Port(block, (len(top.bodies), n), unit, doc=f"{q} of every body"))
@@ -158,7 +206,23 @@ class ExudynCore(EditedCore):
         self._no_wrench, self._vel_unset = self._wrench.tobytes(), self._vel.tobytes()  # bytes of inputs at rest
 
     def bind(self) -> None:
+        """Take the ports of the binding: those of the current bodies, or (a rollback across an added or
+        removed body) those of an earlier topology, which the state restored next goes with."""
+        names = frozenset(self.out)
+        if names and names != self._view.out_names:
+            view = self._by_ports.get(names)
+            if view is None:
+                raise fail(self.name, f"bound to outputs of no body layout it has had ({len(names)} ports; it has "
+                           f"{len(self._view.out_names)} now)")
+            self._use_top(view)
+        self._attach()
+
+    def _attach(self) -> None:
+        """Views on the bus when the binding holds the current topology's ports; otherwise (an edit that
+        added or removed bodies, until the world binds the new ports) arrays of its own."""
         self._unbind()
+        if self.out and frozenset(self.out) != self._view.out_names:
+            return
         for key in ("body_pos", "body_quat", "body_linvel", "body_angvel", "joint_q", "joint_qd"):
             if self.out.get(key) is not None:
                 self._out[key] = self.out[key]
@@ -266,19 +330,38 @@ class ExudynCore(EditedCore):
         p = self._param_values
         h = self._period / self._nsub
         g = float(np.linalg.norm(p["gravity"]))
-        mu = max([float(p["friction"])] + [self._top.spec[b].friction or 0.0 for b in self._top.bodies])
+        mu = max([float(p["friction"])] + [f or 0.0 for f, _e in self._own_materials(self._edits).values()])
         zone = float(p["friction_zone"]) or max(MIN_ZONE, ZONE_PER_STEP * mu * g * h)
         wn = float(p["contact_frequency"]) or CONTACT_PER_STEP / h
         zeta = zeta_for(float(p["restitution"]), h, wn, g, str(p["integrator"]))
         return {"wn": wn, "zeta": zeta, "friction_zone": zone, "step": h}
 
     def _settings(self) -> dict:
-        """What `System.apply` takes, from the parameters."""
+        """What `System.apply` takes, from the parameters (and the bodies' own materials)."""
         self._nsub = self._substeps()
         c = self.contact_settings()
-        return {"gravity": np.asarray(self._param_values["gravity"], dtype=float), "wn": c["wn"], "zeta": c["zeta"],
-                "friction_zone": c["friction_zone"], "friction": float(self._param_values["friction"]),
-                "step": c["step"]}
+        p = self._param_values
+        g = float(np.linalg.norm(p["gravity"]))
+        own = {b: (f, None if e is None else zeta_for(float(e), c["step"], c["wn"], g, str(p["integrator"])))
+               for b, (f, e) in self._own_materials(self._edits).items()}
+        return {"gravity": np.asarray(p["gravity"], dtype=float), "wn": c["wn"], "zeta": c["zeta"],
+                "friction_zone": c["friction_zone"], "friction": float(p["friction"]), "step": c["step"], "own": own}
+
+    def _own_materials(self, edits: Edits) -> dict[str, tuple[float | None, float | None]]:
+        """Body -> its own (friction, restitution), for the bodies that have one: the scene's and the
+        added bodies' values, and those set at run time (`set_material`)."""
+        key = (edits.scene_key(), edits.materials)
+        hit = self._materials_of
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        top = self._top_view(edits).top
+        own = {n: (b.friction, b.restitution) for n, b in top.spec.items()
+               if b.friction is not None or b.restitution is not None}
+        for mat in edits.materials:
+            own[mat.body] = (mat.friction, mat.restitution)
+        own = {b: v for b, v in own.items() if v != (None, None)}
+        self._materials_of = (key, own)
+        return own
 
     def _apply_params(self) -> None:
         settings = self._settings()
@@ -364,6 +447,9 @@ class ExudynCore(EditedCore):
     def _reserved_joint_names(self) -> set[str]:
         return set(self._top.joints) | set(self._top.bodies)
 
+    def _body_spec(self, body: str) -> BodySpec | None:
+        return self._top.spec.get(body)
+
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None = None) -> None:
         row = self._row(body)
         if body not in self._top.free:
@@ -381,14 +467,17 @@ class ExudynCore(EditedCore):
 
     # -- structures -------------------------------------------------------------------------------------------
     def _structure(self, edits: Edits, start: Start) -> System:
+        """The system of ``edits`` (its structure and which bodies have materials of their own; their values
+        are parameters), from the cache or built now, starting at ``start``."""
         settings = self._settings()
-        key = (edits, settings["wn"])
+        key = self._key(edits, settings["wn"])
         s = self._cache.get(key)
         if s is None:
-            plan = make_plan(self._top, edits)
+            top = self._top_view(edits).top
+            plan = make_plan(top, edits)
             p = self._param_values
             options = Options(str(p["integrator"]), bool(p["verbose"]), bool(p["link_contacts"]))
-            s = System(self._top, plan, edits, start, options, settings)
+            s = System(top, plan, key[0], start, options, settings, key[1])
         self._cache[key] = s
         self._cache.move_to_end(key)
         while len(self._cache) > CACHE_SIZE:
@@ -408,13 +497,34 @@ class ExudynCore(EditedCore):
             start.q[j], start.qd[j] = float(self._jq[i]), float(self._jqd[i])
         return start
 
+    def _key(self, edits: Edits, wn: float) -> tuple:
+        """What a system is built for: the structure, the bodies with materials of their own, the contact
+        frequency."""
+        return (edits.structural(), frozenset(self._own_materials(edits)), wn)
+
     def _activate(self, edits: Edits, *, carry: bool) -> None:
+        old = self._edits
+        if edits.structural() == old.structural() and self._key(edits, self._s.wn)[1] == self._s.own:
+            self._edits = edits  # other materials only: parameters of the same system
+            self._s.apply(**self._settings())
+            return
+        view = self._top_view(edits)
         if carry:
-            self._cache.pop((edits, self._settings()["wn"]), None)  # a cached one would start where it was
-            new = self._structure(edits, self._start_now())
+            start = self._start_now()
+            self._edits = edits  # (the key: its materials)
+            self._cache.pop(self._key(edits, self._settings()["wn"]), None)  # a cached one would start where it was
         else:
-            new = self._structure(edits, Start())
-        self._s, self._edits = new, edits
+            start = Start()
+            self._edits = edits
+        try:
+            new = self._structure(edits, start)
+        except BaseException:
+            self._edits = old
+            raise
+        if view is not self._view:  # bodies added or removed: other ports
+            self._use_top(view)
+            self._attach()
+        self._s = new
         self._s.apply(**self._settings())
 
     def _edit(self, edits: Edits) -> None:

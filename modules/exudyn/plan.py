@@ -5,7 +5,8 @@ The edits are the kernel's `Edits` (immutable named tuples, so they compare, has
 are part of the core's state):
 
 - ``frozen``: one `FrozenObject` per frozen object: where everything stood when it froze;
-- ``welds``: one `Weld` per `make_joint`, its ``data`` the pose of b in a's frame (7 values);
+- ``welds``: one `Weld` per `make_joint`, a weld's ``data`` the pose of b in a's frame (7 values); the
+  other kinds (hinge, slider, ball) are springs between carriers (`exudyn.joints`);
 - ``groups``: sorted tuples of bodies that do not collide with one another (`no_collision`).
 """
 
@@ -54,6 +55,8 @@ class Plan:
     frozen_joints: dict[str, float]
     frozen_cables: dict[str, np.ndarray]
     groups: tuple[tuple[str, ...], ...]
+    joints: tuple = ()
+    """The hinges, sliders and balls made at run time (`Weld`s): springs between carriers (`exudyn.joints`)."""
 
     @property
     def world(self) -> Carrier:
@@ -89,13 +92,15 @@ def make_plan(top: Topology, edits: Edits) -> Plan:
             carriers[cable].kind = "frozen_cable"
             frozen_cables[cable] = np.asarray(coords, dtype=float)
     for weld in edits.welds:
-        _weld(top, carriers, carrier_of, weld.name, weld.a, weld.b, weld.data)
+        if weld.kind == "weld":
+            _weld(top, carriers, carrier_of, weld.name, weld.a, weld.b, weld.data)
     carriers = {k: c for k, c in carriers.items() if c.members or k == ""}
     trees: dict[str, list[str]] = {}
     for n in top.bodies:
         if carriers.get(n) is not None and carriers[n].kind == "link":
             trees.setdefault(top.tree_of[n], []).append(n)
-    return Plan(carriers, carrier_of, trees, frozen_joints, frozen_cables, tuple(edits.groups))
+    return Plan(carriers, carrier_of, trees, frozen_joints, frozen_cables, tuple(edits.groups),
+                tuple(w for w in edits.welds if w.kind != "weld"))
 
 
 def _move(carriers: dict[str, Carrier], carrier_of: dict[str, str], body: str, dest: str, rel: geo.Pose) -> None:

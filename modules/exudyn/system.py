@@ -50,6 +50,7 @@ from dynabrain.orchestrator.kernel.core import Edits
 from . import cable as xc
 from . import contact as xk
 from . import geometry as geo
+from . import joints as xj
 from .inputs import Inputs
 from .outputs import Frame, Outputs
 from .plan import Carrier, Plan
@@ -113,8 +114,10 @@ class Options:
 class System(Outputs, Inputs):
     """An Exudyn system for one structure (a `Plan`), ready to step."""
 
-    def __init__(self, top: Topology, plan: Plan, edits: Edits, start: Start, options: Options, settings: dict):
+    def __init__(self, top: Topology, plan: Plan, edits: Edits, start: Start, options: Options, settings: dict,
+                 own: frozenset[str] = frozenset()):
         self.top, self.plan, self.edits, self._start = top, plan, edits, start
+        self.own = own  # the bodies with friction or restitution of their own: a material each
         self.options, self.verbose = options, options.verbose
         self.sc = exu.SystemContainer()
         self.mbs = mbs = self.sc.AddSystem()
@@ -125,6 +128,7 @@ class System(Outputs, Inputs):
         self.materials: list[float | None] = [None]
         self.free: list[tuple[int, int, int]] = []  # (node, rigid body, gravity load)
         self.free_mass: list[float] = []  # the mass of each free carrier
+        self.free_inertia: list[np.ndarray] = []  # ... and its inertia about its centre of mass (3x3)
         self.torque_loads: list[int] = []  # each free carrier's torque load (`Inputs.push`)
         self.trees: list[dict] = []
         self.cables: list[xc.CableParts] = []
@@ -136,6 +140,7 @@ class System(Outputs, Inputs):
                 self._carrier(plan.carriers[owner], start)
             for cable in self.cables:
                 xc.pin(self, cable)
+            self.springs = xj.build(self, plan.joints)
             excluded = self._excluded(plan.groups)
             self.wn = float(settings["wn"])
             self.contacts = xk.build_sets(mbs, self.items, excluded, self._box(), len(self.materials), self.wn)
@@ -190,6 +195,7 @@ class System(Outputs, Inputs):
                                                    loadVector=[0.0, 0.0, 0.0]))
         self.free.append((node, body, load))
         self.free_mass.append(mass)
+        self.free_inertia.append(np.asarray(inertia, dtype=float))
         self.torque_loads.append(mbs.AddLoad(LoadTorqueVector(  # world frame (`Inputs.push`)
             markerNumber=mbs.AddMarker(MarkerBodyRigid(bodyNumber=body)), loadVector=[0.0, 0.0, 0.0])))
         shift = (-com, geo.IDENTITY[1])
@@ -225,7 +231,7 @@ class System(Outputs, Inputs):
                     self._items(member, "link", x, spec.masses[i], kt, (i, markers[i]))
             self._limit(node, i, top.spec[link], spec.axis_inertia(i, top.spec[link].joint.kind))
         self.trees.append({"kt": kt, "node": node, "links": links, "markers": markers, "joints": spec.joints,
-                           "kinematics": Kinematics(spec)})
+                           "kinematics": Kinematics(spec), "spec": spec})
         self.link_ref += [(kt, i) for i in range(n)]
 
     def _limit(self, node: int, i: int, b, inertia: float) -> None:
@@ -250,7 +256,7 @@ class System(Outputs, Inputs):
         shape = geo.contact_shape(b.shape, b.size)
         rot = geo.quat_to_mat(x[1])
         centers = shape.centers @ rot.T + x[0]
-        item = xk.BodyItems(body, mass, shape.support, shape.round, self.material(b.friction), static=kind == "world")
+        item = xk.BodyItems(body, mass, shape.support, shape.round, self.material(body), static=kind == "world")
         for c, r in zip(centers, shape.radii, strict=False):
             item.spheres.append((self._marker(kind, exu_body, link, c), float(r)))
         if len(shape.triangles):
@@ -259,11 +265,12 @@ class System(Outputs, Inputs):
             item.mesh = (marker, shape.points @ rot.T + x[0], shape.triangles)
         self.items.append(item)
 
-    def material(self, friction: float | None) -> int:
-        """The friction material of a body: 0 (the core's friction) or one of its own."""
-        if friction is None:
+    def material(self, body: str) -> int:
+        """The friction material of a body: 0 (the core's coefficients) or one of its own (its values
+        are set by `apply`)."""
+        if body not in self.own:
             return 0
-        self.materials.append(float(friction))
+        self.materials.append(body)
         return len(self.materials) - 1
 
     def _body_point(self, target: str, point: np.ndarray) -> tuple[Frame, np.ndarray]:
@@ -352,7 +359,7 @@ class System(Outputs, Inputs):
         return min(masses, default=1.0)
 
     def apply(self, *, gravity: np.ndarray, wn: float, zeta: float, friction_zone: float, friction: float,
-              step: float) -> None:
+              step: float, own: dict | None = None) -> None:
         """Apply run-time parameters (idempotent; the contact frequency must be the one it was built with)."""
         mbs, g = self.mbs, [float(x) for x in gravity]
         self.gravity = g
@@ -366,8 +373,11 @@ class System(Outputs, Inputs):
         for connector, inertia in self.limits:
             mbs.SetObjectParameter(connector, "limitStopsStiffness", inertia * wn * wn)
             mbs.SetObjectParameter(connector, "limitStopsDamping", 2.0 * LIMIT_ZETA * wn * inertia)
+        own = own or {}
         xk.apply(self.contacts, wn=wn, zeta=zeta, friction_zone=friction_zone,
-                 pairings=xk.pairings(friction, self.materials), step=step, lightest=self.lightest)
+                 pairings=xk.pairings(friction, [None] + [own.get(b, (None, None))[0] for b in self.materials[1:]]),
+                 step=step, lightest=self.lightest, zetas={b: z for b, (_f, z) in own.items() if z is not None})
+        xj.apply(self, self.springs, wn)
 
     def set_forces(self, force: np.ndarray) -> None:
         for tree, rows in zip(self.trees, self.force_rows, strict=True):

@@ -88,7 +88,7 @@ def analyse(core: str, scene: SceneSpec) -> Topology:
     """The topology of a scene of primitives; refuses what the exudyn core cannot simulate."""
     if scene.model:
         raise fail(core, f"a model file ({scene.model}) is not supported by the exudyn core: it simulates scenes "
-                   "of primitives (plane, box, sphere, capsule, cylinder, cable); use core: mujoco for MJCF")
+                   "of primitives (plane, box, sphere, capsule, cylinder, cable); use core: mujoco for MJCF or URDF")
     spec = _check_names(core, scene.bodies)
     for b in scene.bodies:
         _check_body(core, b, spec)

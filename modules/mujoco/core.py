@@ -52,6 +52,7 @@ import numpy as np
 from dynabrain.orchestrator.kernel.core import (
     NO_EDITS,
     BodyInfo,
+    BodySpec,
     EditedCore,
     Edits,
     SceneSpec,
@@ -135,6 +136,21 @@ class ModelShare:
         """Data of this model's shape no scene uses any more (at most `SPARE_DATA`)."""
 
 
+@dataclass(frozen=True, eq=False)
+class SceneView:
+    """The bodies of one scene key (`Edits.scene_key`: bodies added and removed at run time) as the core
+    shows them: the port layout, the rows of the bodies, the ports, and the specs of its primitives."""
+
+    layout: ms.Layout
+    rows: dict[str, int]
+    ports_in: tuple[Port, ...]
+    ports_out: tuple[Port, ...]
+    out_names: frozenset[str]
+    """The outputs' names: how `MujocoCore.bind` knows the layout of a binding."""
+    specs: dict[str, BodySpec]
+    """Body -> its spec, for the scene's primitives and the bodies added at run time."""
+
+
 class CompiledScene:
     """One compiled structure of the core: the MuJoCo model and data for one `Edits` value, and
     where each value of the core's fixed port layout (`mujoco.scene.Layout`) comes from in them.
@@ -150,11 +166,10 @@ class CompiledScene:
     """
 
     def __init__(self, layout: ms.Layout, edits: Edits, model: mujoco.MjModel, movers: tuple,
-                 friction: dict, data: mujoco.MjData | None = None):
-        self.edits = edits  # the structure compiled here
+                 geom_body: dict[str, str], data: mujoco.MjData | None = None):
+        self.edits = edits  # the structure compiled here (`Edits.structural`: no materials)
         self.model = model
         self.movers = movers  # the bodies that move (not fused, not static), in model order
-        self.friction = friction  # geom name -> its own sliding friction (the scene's per-body values)
         self.share: ModelShare | None = None
         """Who else has this ``model`` (a fork's scene, or the one this was forked from), or None while it
         is this scene's own (`clone`, `own_model`)."""
@@ -164,9 +179,14 @@ class CompiledScene:
         self.body_id = {model.body(i).name: i for i in range(1, model.nbody)}  # body name -> MuJoCo id
         # joint name -> where its values lie in qpos and qvel
         self.joint_slices = {model.joint(j).name: ms.joint_slice(model, j) for j in range(model.njnt)}
-        self.weld_ids = np.array([model.equality(w.name).id for w in edits.welds], dtype=int)  # their equalities
-        # each geom's own sliding friction, NaN for those that take the core's `friction` parameter
-        self.geom_own_friction = np.array([friction.get(model.geom(g).name, np.nan) for g in range(model.ngeom)])
+        # the equalities of the joints made at run time
+        self.weld_ids = np.array([model.equality(e).id for w in edits.welds for e in ms.made_equalities(w)], dtype=int)
+        owners: dict[str, list[int]] = {}  # body -> its geoms (a primitive's geom is named as its body)
+        for g in range(model.ngeom):
+            name = model.geom(g).name
+            owners.setdefault(geom_body.get(name, name), []).append(g)
+        self.body_geoms = {b: np.array(g, dtype=int) for b, g in owners.items()}
+        self.applied_materials: tuple | None = None  # the materials the model's geoms were last set for
         self._map_bodies(layout, edits)
         self._map_joints(layout, edits)
         self._map_actuators_sensors(layout)
@@ -304,8 +324,9 @@ class CompiledScene:
         self.free_dofs = tuple(zip(rows, ids, dofs, strict=True))
         # row -> (body id, first dof) of the other moving free bodies welded to it (`make_joint`, through
         # any chain of welds): a velocity set moves them with it, as one rigid body
-        group = {b: {b} for w in self.edits.welds for b in (w.a, w.b)}
-        for w in self.edits.welds:
+        welds = [w for w in self.edits.welds if w.kind == "weld"]
+        group = {b: {b} for w in welds for b in (w.a, w.b)}
+        for w in welds:
             if group[w.a] is not group[w.b]:
                 merged = group[w.a] | group[w.b]
                 for b in merged:
@@ -327,30 +348,31 @@ class MujocoCore(EditedCore):
         Param("substeps", 1, runtime=True, doc="MuJoCo steps per module step (timestep = period/substeps)"),
     )
 
+    MADE_JOINTS = ("weld", "hinge", "slider", "ball")
+
     def __init__(self, name: str, scene: SceneSpec, *, scenario_dir: str | None = None, **params: Any):
         super().__init__(name, scene, **params)
         for key, value in self._param_values.items():
             self._check_param(key, value)
         self._period = DEFAULT_PERIOD_S
         self._source = ms.SpecSource(name, scene, scenario_dir)
-        self._friction = self._source.friction
-        model, movers = ms.build_structure(name, self._source, NO_EDITS)
-        self._layout = ms.make_layout(model)
-        self._rows = {b: i for i, b in enumerate(self._layout.bodies)}
+        self._scenes: dict[tuple, SceneView] = {}  # scene key -> its layout and ports (never dropped: see bind)
+        self._by_ports: dict[frozenset[str], SceneView] = {}  # the same, by the names of its outputs
         self._cache: OrderedDict[Edits, CompiledScene] = OrderedDict()
-        self._use(self._remember(CompiledScene(self._layout, NO_EDITS, model, movers, self._friction)))
         self._edits = NO_EDITS
+        self._use_scene(self._scene_view(NO_EDITS))
+        self._use(self._compiled_for(NO_EDITS))
         self._apply_params(self._compiled)
-        mujoco.mj_forward(model, self._compiled.data)
-        self._ports_in, self._ports_out = self._make_ports()
+        mujoco.mj_forward(self._compiled.model, self._compiled.data)
         self._unbind()
 
     # -- ports --------------------------------------------------------------------------------------------
-    def _make_ports(self) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
+    @staticmethod
+    def _make_ports(lay: ms.Layout) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
         """Block ports, each object's port a view into one. The outputs come in the order of the
         arrays they are copied from, so that a step fills them with few copies: poses (xpos, xquat),
         joints (qpos, qvel), then the model's sensors and the body velocities (one run of sensordata)."""
-        lay, outs, ins, views = self._layout, [], [], []
+        outs, ins, views = [], [], []
         body_blocks = (("body_pos", "pos", 3, "m"), ("body_quat", "quat", 4, "1"),
                        ("body_linvel", "linvel", 3, "m/s"), ("body_angvel", "angvel", 3, "rad/s"))
 
@@ -413,10 +435,26 @@ class MujocoCore(EditedCore):
         self._q, self._qd, self._sd = (blocks.get(k, empty) for k in ("joint_q", "joint_qd", "sensordata"))
 
     def bind(self) -> None:
+        """Take the ports of the binding: those of the current bodies, or (a rollback across an added or
+        removed body) those of an earlier layout, which the state restored next goes with."""
+        names = frozenset(self.out)
+        if names and names != self._scene.out_names:
+            view = self._by_ports.get(names)
+            if view is None:
+                raise DynabrainError(f"core {self.name!r}: bound to outputs of no body layout it has had "
+                                     f"({len(names)} ports; it has {len(self._scene.out_names)} now)")
+            self._use_scene(view)
+        self._attach()
+
+    def _attach(self) -> None:
+        """Views on the bus when the binding holds the current layout's ports; otherwise (an edit that
+        added or removed bodies, until the world binds the new ports) private buffers."""
         self._unbind()
+        if not self.out or frozenset(self.out) != self._scene.out_names:
+            return
         if self.out_flat.size == self._own_out.size:  # bound to the bus: write there
             self._out_views(self.out_flat)
-        elif self.out:
+        else:
             raise DynabrainError(f"core {self.name!r}: its outputs are bound without `out_flat`; the core writes "
                                  "them through it (bind as the World does)")
         for attr, key in (("_force", "joint_force"), ("_ctrl", "ctrl"), ("_wrench", "body_wrench"),
@@ -547,7 +585,9 @@ class MujocoCore(EditedCore):
         dicts are never changed in place)."""
         p = self._param_values
         self._nsub = int(p["substeps"])
-        if s.applied is not None and s.applied[0] is p and s.applied[1] == self._period:
+        materials = self._edits.materials
+        if (s.applied is not None and s.applied[0] is p and s.applied[1] == self._period
+                and s.applied_materials == materials):
             return
         if s.own_model() and s is self._compiled:
             self._view = s.view
@@ -555,17 +595,40 @@ class MujocoCore(EditedCore):
         dt = self._period / self._nsub
         m.opt.timestep = dt
         m.opt.gravity[:] = p["gravity"]
-        fr = float(p["friction"])
-        m.geom_friction[:, 0] = np.where(np.isnan(s.geom_own_friction), fr, s.geom_own_friction)
-        solref, solimp = ms.contact_params(float(p["restitution"]), dt, float(np.linalg.norm(p["gravity"])))
-        m.geom_solref[:] = solref
+        fr, g = float(p["friction"]), float(np.linalg.norm(p["gravity"]))
+        solref, solimp = ms.contact_params(float(p["restitution"]), dt, g)
+        friction, priority, solrefs = np.full(m.ngeom, fr), np.zeros(m.ngeom, dtype=int), np.tile(solref, (m.ngeom, 1))
+        for body, (own_f, own_e) in self._own_materials().items():  # a body's own coefficients rule its contacts
+            geoms = s.body_geoms.get(body)
+            if geoms is not None:
+                priority[geoms] = 1
+                if own_f is not None:
+                    friction[geoms] = own_f
+                if own_e is not None:
+                    solrefs[geoms] = ms.contact_params(own_e, dt, g)[0]
+        m.geom_friction[:, 0], m.geom_priority[:], m.geom_solref[:] = friction, priority, solrefs
         m.geom_solimp[:] = solimp
         if m.npair:
             m.pair_solref[:], m.pair_solimp[:], m.pair_friction[:, :2] = solref, solimp, fr
         if len(s.weld_ids):
             m.eq_solref[s.weld_ids] = (2.0 * dt, 1.0)
             m.eq_solimp[s.weld_ids] = (0.99, 0.99, 0.001, 0.5, 2.0)
-        s.applied = (p, self._period)
+        s.applied, s.applied_materials = (p, self._period), materials
+
+    def _own_materials(self) -> dict[str, tuple[float | None, float | None]]:
+        """Body -> its own (friction, restitution), for the bodies that have one: the scene's and the
+        added bodies' values, and those set at run time (`set_material`)."""
+        key = (self._edits.scene_key(), self._edits.materials)
+        hit = self._materials_of
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        own = {n: (b.friction, b.restitution) for n, b in self._scene_view(self._edits).specs.items()
+               if b.friction is not None or b.restitution is not None}
+        for mat in self._edits.materials:
+            own[mat.body] = (mat.friction, mat.restitution)
+        own = {b: v for b, v in own.items() if v != (None, None)}
+        self._materials_of = (key, own)
+        return own
 
     # -- outputs ------------------------------------------------------------------------------------------------
     def _write_outputs(self, s: CompiledScene) -> None:
@@ -726,23 +789,63 @@ class MujocoCore(EditedCore):
         return s
 
     def _compiled_for(self, edits: Edits) -> CompiledScene:
-        """The compiled scene of ``edits``: from the cache, or compiled now."""
-        s = self._cache.get(edits)
+        """The compiled scene of ``edits`` (its structure: materials are applied to it, not compiled):
+        from the cache, or compiled now."""
+        key = edits.structural()
+        s = self._cache.get(key)
         if s is None:
-            model, movers = ms.build_structure(self.name, self._source, edits)
-            s = CompiledScene(self._layout, edits, model, movers, self._friction)
+            view = self._scene_view(key)  # (new bodies and nothing else: compiles and caches this very structure)
+            s = self._cache.get(key)
+            if s is None:
+                model, movers = ms.build_structure(self.name, self._source, key)
+                s = CompiledScene(view.layout, key, model, movers, self._source.geom_body)
         return self._remember(s)
 
+    def _scene_view(self, edits: Edits) -> SceneView:
+        """The layout and ports of the bodies of ``edits`` (added and removed ones: `Edits.scene_key`),
+        made once per scene key from the model compiled with those bodies and no other edit."""
+        key = edits.scene_key()
+        view = self._scenes.get(key)
+        if view is None:
+            bare = NO_EDITS._replace(added=edits.added, removed=edits.removed)
+            model, movers = ms.build_structure(self.name, self._source, bare)
+            layout = ms.make_layout(model)
+            self._remember(CompiledScene(layout, bare, model, movers, self._source.geom_body))
+            ports_in, ports_out = self._make_ports(layout)
+            specs = {b.name: b for b in (self._source.bodies(key) if self._source.base is None else edits.added)}
+            view = SceneView(layout, {b: i for i, b in enumerate(layout.bodies)}, ports_in, ports_out,
+                             frozenset(p.name for p in ports_out), specs)
+            self._scenes[key] = view
+            self._by_ports.setdefault(view.out_names, view)
+        return view
+
+    def _use_scene(self, view: SceneView) -> None:
+        """Make ``view`` the layout the core's ports and rows follow."""
+        self._scene, self._layout, self._rows = view, view.layout, view.rows
+        self._ports_in, self._ports_out = view.ports_in, view.ports_out
+        self._materials_of: tuple | None = None
+
     def _activate(self, edits: Edits, *, carry: bool) -> None:
-        old, new = self._compiled, self._compiled_for(edits)
-        self._apply_params(new)
-        if carry:
-            ms.carry_over(old, new)
-            mujoco.mj_forward(new.model, new.data)
-        self._use(new)
+        old = self._compiled
+        new = old if edits.structural() == old.edits else self._compiled_for(edits)
+        view = self._scene_view(edits)  # (both may compile, and raise: nothing has changed yet)
         self._edits = edits
+        self._apply_params(new)
+        if new is not old:
+            if carry:
+                ms.carry_over(old, new)
+                mujoco.mj_forward(new.model, new.data)
+            self._use(new)
+        elif carry:  # the same structure, other materials: the contacts of mj_step1 again
+            mujoco.mj_step1(new.model, new.data)
+        if view is not self._scene:  # bodies added or removed: other ports
+            self._use_scene(view)
+            self._attach()
 
     def _edit(self, edits: Edits) -> None:
         if edits != self._edits:
             self._activate(edits, carry=True)
             self._write_all()
+
+    def _body_spec(self, body: str) -> BodySpec | None:
+        return self._scene.specs.get(body)

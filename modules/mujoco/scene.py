@@ -28,7 +28,7 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from dynabrain.orchestrator.kernel.core import FLEX_SHAPES, SHAPES, BodySpec, Edits, SceneSpec
+from dynabrain.orchestrator.kernel.core import FLEX_SHAPES, SHAPES, BodySpec, Edits, SceneSpec, scene_bodies
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.portable import state_type
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
@@ -82,19 +82,30 @@ class SpecSource:
             raise fail(core, "a scene has either a model file or bodies, not both")
         self.core, self.scene = core, scene
         self.base = _finish(core, _spec_from_file(core, scene.model, scenario_dir), scene) if scene.model else None
-        self.friction = {b.name: float(b.friction) for b in scene.bodies if b.friction is not None}
+        self.geom_body = _geom_owners(self.base) if self.base is not None else {}
+        """Geom name -> the body it belongs to, for the model file's geoms (a primitive's geom is
+        named as its body)."""
         if self.base is None:
             self.spec({})  # check the scene now: errors belong to construction
 
-    def spec(self, bake: dict[str, tuple | None]) -> tuple[mujoco.MjSpec, set[str]]:
+    def bodies(self, scene_key: tuple = ((), ())) -> tuple[BodySpec, ...]:
+        """The primitives of the scene with the bodies added and removed of ``scene_key``."""
+        return scene_bodies(self.scene, scene_key)
+
+    def spec(self, bake: dict[str, tuple | None], scene_key: tuple = ((), ())) -> tuple[mujoco.MjSpec, set[str]]:
         """A fresh spec with the bodies of ``bake`` frozen (pose in parent, or None: keep), and the
-        names of the joints that froze."""
+        names of the joints that froze; with the bodies added and removed of ``scene_key``."""
         if self.base is None:
-            spec = _finish(self.core, _spec_from_bodies(self.core, self.scene.bodies, bake), self.scene)
+            spec = _finish(self.core, _spec_from_bodies(self.core, self.bodies(scene_key), bake), self.scene)
             removed: set[str] = set()  # frozen bodies were built without joints
         else:
             with _BASE_LOCK:  # forks share the base and may compile in threads
                 spec = self.base.copy()
+            for b in scene_key[0]:  # bodies added at run time (only those: model bodies are not removed)
+                if b.name in {x.name for x in spec.bodies}:
+                    raise fail(self.core, f"{_where(b)}a body of that name exists already")
+                _add_body(self.core, spec.worldbody, b, b.name in bake, bake.get(b.name),
+                          degree=bool(spec.compiler.degree)).fuse = 0
             removed = set()
             for name, rel in bake.items():
                 removed |= _bake(spec.body(name), rel, spec)
@@ -119,7 +130,8 @@ def _spec_from_file(core: str, path: str, scenario_dir: str | None) -> mujoco.Mj
     try:
         return mujoco.MjSpec.from_file(full)
     except Exception as exc:  # mujoco raises ValueError with the parser's message
-        raise fail(core, f"cannot read model file {full!r}: {exc}") from None
+        kind = "URDF" if full.lower().endswith(".urdf") else "MJCF"
+        raise fail(core, f"cannot read {kind} model file {full!r}: {exc}") from None
 
 
 def _spec_from_bodies(core: str, bodies: Sequence[BodySpec], bake: dict) -> mujoco.MjSpec:
@@ -152,7 +164,8 @@ def _where(b: BodySpec) -> str:
     return f"body {b.name!r}" + (f" (line {b.line})" if b.line else "") + ": "
 
 
-def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel: tuple | None) -> mujoco.MjsBody:
+def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel: tuple | None, *,
+              degree: bool = False) -> mujoco.MjsBody:
     if b.shape in FLEX_SHAPES:
         raise fail(core, f"{_where(b)}a flexible body (shape {b.shape!r}) is not supported by the mujoco core; "
                    "flexible bodies need core: exudyn")
@@ -167,7 +180,7 @@ def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel:
         if b.mass <= 0:
             raise fail(core, f"{_where(b)}mass must be positive, got {b.mass}")
         geom.mass = float(b.mass)
-    _add_joint(core, body, b, frozen)
+    _add_joint(core, body, b, frozen, degree)
     return body
 
 
@@ -186,7 +199,7 @@ def _geom_size(core: str, b: BodySpec) -> list[float]:
     return [s[0], s[1] / 2, 0.0]
 
 
-def _add_joint(core: str, body: mujoco.MjsBody, b: BodySpec, frozen: bool) -> None:
+def _add_joint(core: str, body: mujoco.MjsBody, b: BodySpec, frozen: bool, degree: bool = False) -> None:
     kind = b.joint.kind if b.joint is not None else ("free" if b.parent is None else "fixed")
     if b.shape == "plane" and ((b.joint is not None and kind != "fixed") or b.parent is not None):
         raise fail(core, f"{_where(b)}a plane is static: it takes no joint and no parent")
@@ -206,7 +219,8 @@ def _add_joint(core: str, body: mujoco.MjsBody, b: BodySpec, frozen: bool) -> No
                            damping=float(j.damping))
     if j.range is not None:
         joint.limited = mujoco.mjtLimited.mjLIMITED_TRUE
-        joint.range = [float(j.range[0]), float(j.range[1])]
+        scale = 180.0 / np.pi if degree and kind == "hinge" else 1.0  # a model file's spec may be in degrees
+        joint.range = [float(j.range[0]) * scale, float(j.range[1]) * scale]
 
 
 def _apply_options(core: str, spec: mujoco.MjSpec, options: dict) -> None:
@@ -228,10 +242,15 @@ def _apply_options(core: str, spec: mujoco.MjSpec, options: dict) -> None:
             setattr(opt, key, _NUMERIC_OPTIONS[key](value))
 
 
+def _geom_owners(spec: mujoco.MjSpec) -> dict[str, str]:
+    """Geom name -> the name of the body it belongs to (every geom is named by `_name_everything`)."""
+    return {g.name: b.name for b in spec.bodies[1:] for g in b.geoms}
+
+
 def _name_everything(spec: mujoco.MjSpec) -> None:
-    """Give unnamed bodies, joints, actuators and sensors a name (structures map them by name)."""
+    """Give unnamed bodies, joints, actuators, sensors and geoms a name (structures map them by name)."""
     groups = (("body", spec.bodies[1:]), ("joint", spec.joints), ("actuator", spec.actuators),
-              ("sensor", spec.sensors))
+              ("sensor", spec.sensors), ("geom", spec.geoms))
     for kind, items in groups:
         taken = {x.name for x in items}
         for i, item in enumerate(items):
@@ -342,12 +361,11 @@ class FrozenObject(NamedTuple):
 
 def build_structure(core: str, source: SpecSource, edits: Edits) -> tuple[mujoco.MjModel, tuple[str, ...]]:
     """Compile the structure ``edits``; return it and its moving bodies."""
-    spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen for b in entry.bodies})
+    spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen for b in entry.bodies},
+                                edits.scene_key())
     if removed:
         _prune(spec, removed)
-    for weld in edits.welds:
-        spec.add_equality(type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY, name=weld.name,
-                          name1=weld.a, name2=weld.b, data=np.asarray(weld.data, dtype=np.float64))
+    anchors = _made_joints(spec, edits.welds)
     for pair in _exclusions(spec, edits.groups):
         spec.add_exclude(bodyname1=pair[0], bodyname2=pair[1])
     movers = _moving_bodies(spec)
@@ -359,10 +377,81 @@ def build_structure(core: str, source: SpecSource, edits: Edits) -> tuple[mujoco
     try:
         if edits.frozen:
             spec.fuse_static()
-        return spec.compile(), movers
+        model = spec.compile()
+        carriages = [w for w in edits.welds if w.kind == "slider"]
+        if carriages:  # each carriage weighs a hundredth of the body sliding on it: compile again with that
+            for w in carriages:
+                mass = CARRIAGE_SHARE * float(model.body_subtreemass[model.body(w.b).id]) or CARRIAGE_SHARE
+                carriage = spec.body(CARRIAGE + w.name)
+                carriage.mass, carriage.inertia = mass, [mass * CARRIAGE_RADIUS ** 2] * 3
+            model = spec.compile()
     except Exception as exc:
         what = ", ".join(e.object for e in edits.frozen)
         raise fail(core, f"cannot build the structure (frozen: {what or 'none'}): {exc}") from None
+    for name, anchor_b in anchors:  # MuJoCo computes a connect's second anchor from the model's qpos0: set it
+        model.eq_data[model.equality(name).id, 3:6] = anchor_b
+    return model, movers
+
+
+CARRIAGE = "__dynabrain_carriage_"
+"""Name prefix of the carriage body of a slider made at run time."""
+CARRIAGE_SHARE = 0.01
+"""A slider's carriage weighs this share of the body that slides on it (a body has to have a mass)."""
+CARRIAGE_RADIUS = 0.01
+"""The carriage's radius of gyration (m): its inertia is its mass times this squared."""
+HINGE_HALF = 0.05
+"""A hinge holds two points of its axis together, this far (m) on either side of the anchor."""
+SECOND = "__dynabrain_2"
+"""Name suffix of a hinge's second point constraint."""
+
+
+def made_equalities(weld) -> tuple[str, ...]:
+    """The names of the MuJoCo equalities that make a joint made at run time (`Weld`)."""
+    return (weld.name, weld.name + SECOND) if weld.kind == "hinge" else (weld.name,)
+
+
+def _made_joints(spec: mujoco.MjSpec, welds: tuple) -> list[tuple[str, np.ndarray]]:
+    """Add the joints made at run time: a weld is a weld equality; a ball holds its anchor together (a
+    connect equality), a hinge two points of its axis; a slider is a carriage body on a slide joint in
+    body a, body b welded to it. Returns each connect's name and its anchor in body b (to set once
+    compiled)."""
+    fixes = []
+    weld_type, connect, body = mujoco.mjtEq.mjEQ_WELD, mujoco.mjtEq.mjEQ_CONNECT, mujoco.mjtObj.mjOBJ_BODY
+    for w in welds:
+        if w.kind == "weld":
+            spec.add_equality(type=weld_type, objtype=body, name=w.name, name1=w.a, name2=w.b,
+                              data=np.asarray(w.data, dtype=np.float64))
+            continue
+        f = w.data
+        if w.kind == "slider":
+            carriage = spec.body(w.a).add_body(name=CARRIAGE + w.name, pos=list(f.pos_a), quat=list(f.quat_a))
+            carriage.mass, carriage.inertia, carriage.explicitinertial = CARRIAGE_SHARE, [1e-6] * 3, True
+            carriage.add_joint(name=CARRIAGE + w.name, type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0.0, 0.0, 1.0])
+            inv = _inverse(f.pos_b, f.quat_b)  # body b in the joint frame
+            spec.add_equality(type=weld_type, objtype=body, name=w.name, name1=CARRIAGE + w.name, name2=w.b,
+                              data=np.array([0.0, 0.0, 0.0, *inv, 1.0, 0.0]))
+            continue
+        points = [(0.0, 0.0, 0.0)] if w.kind == "ball" else [(0.0, 0.0, -HINGE_HALF), (0.0, 0.0, HINGE_HALF)]
+        for name, point in zip(made_equalities(w), points, strict=True):
+            at_a, at_b = (np.asarray(pos) + _rotate(quat, point) for pos, quat in ((f.pos_a, f.quat_a),
+                                                                                   (f.pos_b, f.quat_b)))
+            spec.add_equality(type=connect, objtype=body, name=name, name1=w.a, name2=w.b,
+                              data=np.array([*at_a, *at_b, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+            fixes.append((name, at_b))
+    return fixes
+
+
+def _rotate(quat, v) -> np.ndarray:
+    out = np.empty(3)
+    mujoco.mju_rotVecQuat(out, np.asarray(v, dtype=np.float64), np.asarray(quat, dtype=np.float64))
+    return out
+
+
+def _inverse(pos, quat) -> tuple[float, ...]:
+    """The pose (pos, quat) inverse of ``pos``, ``quat``."""
+    neg = np.empty(4)
+    mujoco.mju_negQuat(neg, np.asarray(quat, dtype=np.float64))
+    return (*map(float, -_rotate(neg, pos)), *map(float, neg))
 
 
 def _bake(body: mujoco.MjsBody, rel: tuple | None, spec: mujoco.MjSpec) -> set[str]:
@@ -426,7 +515,7 @@ def _moving_bodies(spec: mujoco.MjSpec) -> tuple[str, ...]:
     while stack:
         body, moving = stack.pop()
         moving = moving or bool(body.joints) or bool(body.mocap)
-        if moving:
+        if moving and not body.name.startswith(CARRIAGE):  # (a carriage has no port)
             out.append(body.name)
         stack.extend((c, moving) for c in reversed(body.bodies))
     return tuple(out)

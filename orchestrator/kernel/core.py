@@ -158,6 +158,12 @@ class BodySpec:
     (radius,), with the rest in ``cable``.
     ``pos`` is in the parent's frame (the world's when ``parent`` is None); ``quat`` is w-x-y-z.
     A plane is always static; a top-level body without ``joint`` is free.
+
+    Values may be written as a scenario writes them: lengths and masses with units (``"100mm"``,
+    ``"50g"``), a colour by name (``"blue"``) or RGB(A), a joint by kind (``"hinge"``); they become SI
+    numbers when the spec is made, and a value no core can take raises `BodySpecError` naming the body
+    and the field (`kernel.bodies.normalise`). ``friction`` and ``restitution`` are the body's own
+    coefficients (None: the core's); `PhysicsCore.set_material` changes them at run time.
     """
 
     name: str
@@ -174,6 +180,14 @@ class BodySpec:
     """Line in the scenario file where the body is written (for errors)."""
     cable: CableSpec | None = None
     """The rope of a ``cable`` body (shape in `FLEX_SHAPES`); None for rigid shapes."""
+    restitution: float | None = None
+    """The body's own coefficient of restitution (0..1); None: the core's ``restitution``."""
+
+    def __post_init__(self) -> None:
+        from .bodies import normalise  # (bodies.py uses these classes)
+
+        for key, value in normalise(self).items():  # units and colour names as a scenario writes them
+            object.__setattr__(self, key, value)
 
 
 @dataclass(frozen=True)
@@ -198,15 +212,28 @@ class BodyInfo:
 
 @state_type
 class Weld(NamedTuple):
-    """A joint made at run time (`PhysicsCore.make_joint`): body ``b`` held rigidly to body ``a`` as
-    they stood when it was made."""
+    """A joint made at run time (`PhysicsCore.make_joint`) between bodies ``a`` and ``b`` as they stood
+    when it was made: a weld holds them rigidly, a hinge, slider or ball lets them turn or slide."""
 
     name: str
     """The joint's name (unique among the scene's joints and the other welds)."""
     a: str
     b: str
     data: tuple
-    """What the engine needs to make the weld again (the relative pose, in the engine's terms)."""
+    """What the engine needs to make the joint again: for a weld the relative pose, in the engine's
+    terms; for the other kinds the joint's frame in each body (`kernel.bodies.JointFrames`)."""
+    kind: str = "weld"
+    """weld, hinge, slider or ball (`kernel.bodies.MADE_JOINT_KINDS`)."""
+
+
+@state_type
+class Material(NamedTuple):
+    """A body's own contact coefficients, set at run time (`PhysicsCore.set_material`); None: the
+    core's parameter."""
+
+    body: str
+    friction: float | None
+    restitution: float | None
 
 
 @state_type
@@ -221,7 +248,47 @@ class Edits(NamedTuple):
     """The joints made at run time, in the order they were made."""
     groups: tuple[tuple[str, ...], ...] = ()
     """The objects of each `no_collision`, sorted, in the order the calls came."""
+    added: tuple[BodySpec, ...] = ()
+    """Bodies added at run time (`PhysicsCore.add_body`), in the order they came, each as it was
+    added (its ``pos`` and ``quat`` where it appeared)."""
+    removed: tuple[str, ...] = ()
+    """Objects of the scene as written that `PhysicsCore.remove_body` took out (a body added at run
+    time and removed again simply leaves ``added``)."""
+    materials: tuple[Material, ...] = ()
+    """The bodies whose friction or restitution was set at run time (`PhysicsCore.set_material`),
+    sorted by body: their own coefficients from then on."""
 
+    def scene_key(self) -> tuple:
+        """What decides the core's ports: the bodies added and removed."""
+        return (self.added, self.removed)
+
+    def structural(self) -> Edits:
+        """These edits without the materials (which an engine applies without rebuilding)."""
+        return self._replace(materials=()) if self.materials else self
+
+
+def scene_bodies(scene: SceneSpec, scene_key: tuple) -> tuple[BodySpec, ...]:
+    """The primitives of ``scene`` once the bodies of ``scene_key`` (`Edits.scene_key`: added, removed)
+    were added and removed: the scene's, less the removed objects and what hangs on them, then the
+    added ones."""
+    added, removed = scene_key
+    kept = scene.bodies
+    if removed:
+        parent = {b.name: b.parent for b in kept}
+
+        def gone(name: str | None) -> bool:
+            while name is not None:
+                if name in removed:
+                    return True
+                name = parent.get(name)
+            return False
+
+        kept = tuple(b for b in kept if not gone(b.name))
+    return (*kept, *added)
+
+
+KEEP: Any = type("Keep", (), {"__repr__": lambda self: "KEEP"})()
+"""What `PhysicsCore.set_material` takes for a coefficient it should leave as it is."""
 
 NO_EDITS = Edits()
 """The structure of a scene as it was written: nothing frozen, no weld, no collision filter."""
@@ -278,8 +345,13 @@ class PhysicsCore(Module):
         """Simulate only ``objects``; freeze every other object at its current pose."""
 
     @abstractmethod
-    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
-        """Join bodies ``a`` and ``b`` rigidly as they stand now; returns the joint's name."""
+    def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
+                   axis: Sequence[float] | None = None, anchor: Sequence[float] | None = None) -> str:
+        """Join bodies ``a`` and ``b`` as they stand now; returns the joint's name. ``kind``: ``weld``
+        (rigid), ``hinge`` (turns about ``axis`` through ``anchor``), ``slider`` (slides along
+        ``axis``, keeping its orientation) or ``ball`` (turns about ``anchor``); ``axis`` and
+        ``anchor`` are in the world frame (default: z, and b's origin). A core that cannot make a kind
+        refuses it by name."""
 
     @abstractmethod
     def remove_joint(self, name: str) -> None:
@@ -298,6 +370,27 @@ class PhysicsCore(Module):
         bodies between steps (`place`), so the bus shows the new pose before the next step. The
         default does nothing: right for a core whose edits write their outputs themselves."""
 
+    # -- run-time bodies and materials (optional: the defaults refuse, naming the core) ----------------------
+    def add_body(self, spec: BodySpec) -> None:
+        """Add a top-level body where ``spec`` puts it, at rest. The core's ports change (the new
+        body's outputs, and its inputs when it is free): the world reinstalls its structure."""
+        raise DynabrainError(f"{self.ENGINE} core {self.name!r} cannot add bodies at run time")
+
+    def remove_body(self, name: str) -> None:
+        """Remove an object (a top-level body with what hangs on it), its run-time joints and collision
+        filters with it. The core's ports change."""
+        raise DynabrainError(f"{self.ENGINE} core {self.name!r} cannot remove bodies at run time")
+
+    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP) -> None:
+        """Give ``body`` its own friction or restitution (None: the core's parameter again); what is
+        not given stays as it is. Contacts between a body with its own coefficients and one without
+        take the body's own; see the core's docstring for two bodies with their own."""
+        raise DynabrainError(f"{self.ENGINE} core {self.name!r} has no per-body friction or restitution")
+
+    def material(self, body: str) -> Material:
+        """``body``'s own friction and restitution (None where it takes the core's)."""
+        raise DynabrainError(f"{self.ENGINE} core {self.name!r} has no per-body friction or restitution")
+
     # -- parameters ---------------------------------------------------------------------------------------
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
         spec = self.param_specs().get(name)
@@ -311,11 +404,20 @@ class PhysicsCore(Module):
 
 class EditedCore(PhysicsCore):
     """A physics core whose structural edits are one immutable value, part of its state:
-    ``self._edits``, an `Edits` (frozen objects, welds, collision groups). The bookkeeping and the
-    checks live here; an engine says how to freeze an object (`_freeze_entry`), what a weld holds
-    (`_weld_data`) and how to rebuild itself for an edits value (`_edit`). It keeps ``self._rows``
-    (body name -> row) and answers `objects`, `bodies`, `joints`.
+    ``self._edits``, an `Edits` (frozen objects, joints made at run time, collision groups, bodies
+    added and removed, per-body materials). The bookkeeping and the checks live here; an engine says
+    how to freeze an object (`_freeze_entry`), what a weld holds (`_weld_data`) and how to rebuild
+    itself for an edits value (`_edit`, atomic: a value it cannot build raises and changes nothing).
+    It keeps ``self._rows`` (body name -> row) and answers `objects`, `bodies`, `joints`.
+
+    Ports follow the bodies: an edits value with other bodies added or removed (`Edits.scene_key`)
+    has other ports. The engine keeps one port layout per scene key it has seen, and when the world
+    binds it with the ports of another layout (a rollback installs the structure of an earlier
+    state, then restores the core's state), `bind` takes that layout (`_layout_for_binding`).
     """
+
+    MADE_JOINTS: tuple[str, ...] = ("weld",)
+    """The kinds of `make_joint` the engine makes (the others are refused, naming the kind)."""
 
     _edits: Edits
     _rows: dict[str, int]
@@ -341,6 +443,14 @@ class EditedCore(PhysicsCore):
     def _reserved_joint_names(self) -> set[str]:
         """Names a joint made at run time may not take (besides the other made joints)."""
         return set(self.joints())
+
+    def _body_spec(self, body: str) -> BodySpec | None:
+        """The spec of a body of a primitive scene or added at run time; None for a model file's."""
+        return None
+
+    def _scene_body(self, name: str) -> bool:
+        """Whether ``name`` is an object of the scene's primitives (one `remove_body` may take out)."""
+        return any(b.name == name for b in self.scene.bodies) and not self.scene.model
 
     # -- errors ----------------------------------------------------------------------------------------
     def fail(self, message: str) -> DynabrainError:
@@ -382,17 +492,124 @@ class EditedCore(PhysicsCore):
             out.add(o)
         return out
 
-    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
+    def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
+                   axis: Sequence[float] | None = None, anchor: Sequence[float] | None = None) -> str:
+        from .bodies import joint_frames, joint_kind, quantities
+
         self._row(a)
         self._row(b)
         if a == b:
-            raise self.fail(f"make_joint needs two different bodies, got {a!r} twice")
+            raise self.fail(f"make_joint: a joint between a body and itself ({a!r}); it needs two different bodies")
+        try:
+            kind = joint_kind(kind)
+        except DynabrainError as exc:
+            raise self.fail(f"make_joint({a!r}, {b!r}), field kind: {exc}") from None
+        if kind not in self.MADE_JOINTS:
+            raise self.fail(f"make_joint({a!r}, {b!r}): the {self.ENGINE} core cannot make a {kind} joint "
+                            f"(it makes: {', '.join(self.MADE_JOINTS)})")
+        values = {}
+        for key, given, dim in (("axis", axis, None), ("anchor", anchor, "length")):
+            if given is None:
+                continue
+            if kind == "weld" or (kind == "ball" and key == "axis"):
+                raise self.fail(f"make_joint({a!r}, {b!r}), field {key}: a {kind} joint takes no {key}")
+            try:
+                values[key] = np.array(quantities(given, 3, dim))
+            except DynabrainError as exc:
+                raise self.fail(f"make_joint({a!r}, {b!r}), field {key}: {exc}") from None
+        if "axis" in values and not np.linalg.norm(values["axis"]) > 0:
+            raise self.fail(f"make_joint({a!r}, {b!r}), field axis: the axis cannot be zero")
         name = name or f"joint_{a}_{b}"
         welds = self._edits.welds
         if name in {w.name for w in welds} | self._reserved_joint_names():
-            raise self.fail(f"a joint named {name!r} exists already")
-        self._edit(self._edits._replace(welds=(*welds, Weld(name, a, b, self._weld_data(a, b)))))
+            raise self.fail(f"make_joint({a!r}, {b!r}), field name: a joint named {name!r} exists already")
+        if kind == "weld":
+            data = self._weld_data(a, b)
+        else:
+            pose_b = self.body_pose(b)
+            data = joint_frames(self.body_pose(a), pose_b, values.get("anchor", pose_b[0]),
+                                values.get("axis", (0.0, 0.0, 1.0)))
+        self._edit(self._edits._replace(welds=(*welds, Weld(name, a, b, data, kind))))
         return name
+
+    # -- bodies and materials at run time ---------------------------------------------------------------
+    def add_body(self, spec: BodySpec) -> None:
+        if not isinstance(spec, BodySpec):
+            raise self.fail(f"add_body takes a BodySpec, got {type(spec).__name__}")
+        if spec.name in self._rows or spec.name in self._reserved_joint_names():
+            raise self.fail(f"add_body: body {spec.name!r}, field name: a body or joint named {spec.name!r} "
+                            "exists already")
+        if spec.parent is not None:
+            raise self.fail(f"add_body: body {spec.name!r}, field parent: a body added at run time is top-level "
+                            "(join it to another with make_joint)")
+        self._edit(self._edits._replace(added=(*self._edits.added, spec)))
+
+    def remove_body(self, name: str) -> None:
+        objects = self.objects()
+        if name not in objects:
+            if name in self._rows:
+                top = name
+                while self._parent(top) is not None:
+                    top = self._parent(top)
+                raise self.fail(f"remove_body: {name!r} is not an object but a body of object {top!r}")
+            raise self._unknown("object", name, objects)
+        e = self._edits
+        gone = set(self._subtree(name))
+        if any(b.name == name for b in e.added):
+            added, removed = tuple(b for b in e.added if b.name != name), e.removed
+        elif self._scene_body(name):
+            added, removed = e.added, (*e.removed, name)
+        else:
+            raise self.fail(f"remove_body: {name!r} comes from the model file; bodies added at run time and the "
+                            "primitives of a scene can be removed")
+        groups = tuple(g for g in (tuple(n for n in grp if n not in gone) for grp in e.groups) if len(g) > 1)
+        self._edit(e._replace(
+            added=added, removed=removed, groups=tuple(dict.fromkeys(groups)),
+            frozen=tuple(f for f in e.frozen if f.object != name),
+            welds=tuple(w for w in e.welds if w.a not in gone and w.b not in gone),
+            materials=tuple(m for m in e.materials if m.body not in gone)))
+
+    def _subtree(self, obj: str) -> list[str]:
+        """``obj`` and every body under it."""
+        out = [obj]
+        for body in self.bodies():
+            top = body
+            while top is not None and top != obj:
+                top = self._parent(top)
+            if top == obj and body != obj:
+                out.append(body)
+        return out
+
+    def material(self, body: str) -> Material:
+        self._row(body)
+        for m in self._edits.materials:
+            if m.body == body:
+                return m
+        spec = self._body_spec(body)
+        return Material(body, None if spec is None else spec.friction, None if spec is None else spec.restitution)
+
+    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP) -> None:
+        now = self.material(body)
+        values = {"friction": now.friction, "restitution": now.restitution}
+        for key, given, high in (("friction", friction, None), ("restitution", restitution, 1.0)):
+            if given is KEEP or given is None:
+                values[key] = values[key] if given is KEEP else None
+                continue
+            try:
+                x = float(given)
+            except (TypeError, ValueError):
+                raise self.fail(f"set_material({body!r}), field {key}: expected a number or None, "
+                                f"got {given!r}") from None
+            if not (np.isfinite(x) and x >= 0 and (high is None or x <= high)):
+                raise self.fail(f"set_material({body!r}), field {key}: {key} must be from 0"
+                                + (f" to {high:g}" if high is not None else "") + f", got {given!r}")
+            values[key] = x
+        entry = Material(body, values["friction"], values["restitution"])
+        kept = [m for m in self._edits.materials if m.body != body]
+        spec = self._body_spec(body)
+        if spec is None or (spec.friction, spec.restitution) != (entry.friction, entry.restitution):
+            kept.append(entry)
+        self._edit(self._edits._replace(materials=tuple(sorted(kept, key=lambda m: m.body))))
 
     def remove_joint(self, name: str) -> None:
         welds = self._edits.welds

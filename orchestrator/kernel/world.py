@@ -17,6 +17,7 @@ One tick (n -> n+1), the failure policy of each phase in brackets:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fnmatch
 import itertools
 import re
@@ -29,8 +30,9 @@ from typing import Any
 import numpy as np
 
 from . import portable
+from .bodies import BodySpecError
 from .compiled import compiled_by_default, state_saver
-from .core import PhysicsCore
+from .core import KEEP, BodySpec, PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
 from .module import Module, SetupContext
@@ -436,9 +438,18 @@ class World:
         old_layout, old_buf = self._structure.layout, self._buf
         buf = structure.layout.new_bus() if bus is None else bus.copy()
         if carry_values:
+            resized: set[str] = set()  # blocks whose size changed (a core's, after add_body): carry their views
             for name, slot in structure.layout.slots.items():
+                if slot.port.view_of is None:
+                    old = old_layout.slots.get(name)
+                    if old is not None and old.size == slot.size:
+                        buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
+                    elif old is not None:
+                        resized.add(name)
+            for name, slot in structure.layout.slots.items() if resized else ():
                 old = old_layout.slots.get(name)
-                if old is not None and old.size == slot.size and slot.port.view_of is None:
+                if (old is not None and old.size == slot.size and slot.port.view_of is not None
+                        and f"{name.partition('.')[0]}.{slot.port.view_of[0]}" in resized):
                     buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
         self._buf, self._mv, self._ro = buf, memoryview(buf), _read_only(buf)
         self._structure = structure
@@ -457,14 +468,115 @@ class World:
             core.make(names)
             self._edited("make", objects=names)
 
-    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
-        """Join bodies ``a`` and ``b`` as they stand (d-make-joint); returns the joint's name."""
+    def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
+                   axis: Sequence[Any] | None = None, anchor: Sequence[Any] | None = None) -> str:
+        """Join bodies ``a`` and ``b`` as they stand (d-make-joint); returns the joint's name. ``kind``:
+        ``weld`` (rigid, the default), ``hinge`` (about ``axis`` through ``anchor``), ``slider`` (along
+        ``axis``) or ``ball`` (about ``anchor``); ``axis`` and ``anchor`` in the world frame (default z,
+        and b's origin; lengths may carry units). Part of history: a backtick across it undoes it."""
         with self._lock:
             core = self._require_core("make_joint")
             expand_names([a, b], core.bodies(), "body", "make_joint")
-            joint = core.make_joint(a, b, name)
-            self._edited("make_joint", a=a, b=b, joint=joint)
+            extra = {k: v for k, v in (("axis", axis), ("anchor", anchor)) if v is not None}
+            joint = core.make_joint(a, b, name, kind=kind, **extra) if extra or kind != "weld" else \
+                core.make_joint(a, b, name)
+            detail = {"a": a, "b": b, "joint": joint}
+            if kind != "weld" or extra:
+                detail["kind"] = kind
+                detail.update({k: _world_values(v, k) for k, v in extra.items()})
+            self._edited("make_joint", **detail)
             return joint
+
+    # -- bodies at run time (the core's ports change: the structure is installed again) -----------------
+    def add_body(self, spec: BodySpec | None = None, /, **fields: Any) -> str:
+        """Add a body to the running world (also from another thread while `start` runs); returns its
+        name. ``spec`` is a `BodySpec`, or its fields are given by name: ``world.add_body(name="box1",
+        shape="box", size=["100mm"] * 3, mass="50g", pos=[0, 0, "1m"], color="blue", friction=0.4)``,
+        with the units and colour names of a scenario file. It appears at rest where ``pos`` and
+        ``quat`` put it, simulated (`make` and `no_collision` take it by name), with ports of its own
+        (``core.<name>.pos`` ..., and the inputs of a free body). Part of history: a backtick to a tick
+        before it takes it out again, bit for bit. A bad value, or a name in use, raises naming the
+        field, and the world is left as it was."""
+        with self._lock:
+            core = self._require_core("add_body")
+            try:
+                spec = spec if isinstance(spec, BodySpec) and not fields else BodySpec(**fields)
+            except BodySpecError as exc:
+                raise BodySpecError(exc.body, exc.field, exc.detail, call="add_body") from None
+            except TypeError as exc:
+                raise DynabrainError(f"add_body(): {exc} (a BodySpec, or its fields by name: name, shape, size, "
+                                     "pos, quat, mass, color, joint, friction, restitution)") from None
+            self._edit_bodies(core, lambda: core.add_body(spec))
+            self._edited("body_added", body=spec.name, spec=_body_detail(spec))
+            return spec.name
+
+    def remove_body(self, name: str) -> None:
+        """Remove an object (a top-level body, with what hangs on it) from the running world: a body
+        added at run time, or one of the scene's primitives. Its run-time joints and collision filters
+        go with it, and so do connections to its ports (the inputs they drove keep their last value).
+        Part of history: a backtick across it brings it back."""
+        with self._lock:
+            core = self._require_core("remove_body")
+            dropped = self._edit_bodies(core, lambda: core.remove_body(name))
+            self._edited("body_removed", body=name, disconnected=[str(c) for c in dropped])
+
+    def _edit_bodies(self, core: PhysicsCore, edit: Callable[[], None]) -> list[Connection]:
+        """Make a core edit that changes the core's ports, then install a structure with its new ports
+        (`_core_ports_changed`); when that fails the core goes back to its state before."""
+        before = core.get_state()
+        edit()
+        try:
+            return self._core_ports_changed()
+        except BaseException:
+            core.set_state(before)
+            raise
+
+    def _core_ports_changed(self) -> list[Connection]:
+        """After a core edit that changed its ports (bodies added or removed), a structure with the
+        core's new ports replaces the current one (values carried by name; connections to ports that
+        are gone are dropped and returned). History keeps the old structure: a rollback installs it
+        again, and the core takes the old ports back when it is bound to them."""
+        core = self._core
+        assert core is not None
+        rec = self._require_module(core.name)
+        ins, outs = tuple(core.inputs()), tuple(core.outputs())
+        if ins == rec.inputs and outs == rec.outputs:
+            return []
+        names = {f"{core.name}.{p.name}" for p in (*ins, *outs)}
+        prefix = f"{core.name}."
+        gone = [c for c in self._structure.connections
+                if any(end.startswith(prefix) and end not in names for end in (c.src, c.dst))]
+        records = [dataclasses.replace(r, inputs=ins, outputs=outs) if r is rec else r for r in self._structure.records]
+        structure = build_structure(records, [c for c in self._structure.connections if c not in gone])
+        self._install(structure, carry_values=True)
+        core.refresh_outputs()
+        self._dirty = True
+        return gone
+
+    # -- per-body materials ------------------------------------------------------------------------------
+    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP) -> None:
+        """Give a body its own friction or restitution (None: the core's parameter again), from this tick
+        on; the same as ``world.set("core.<body>.friction", value)``. Part of history (a backtick
+        undoes it) and of forks; contacts of the body with one that has no coefficient of its own take
+        the body's."""
+        with self._lock:
+            core = self._require_core("set_material")
+            expand_names([body], core.bodies(), "body", "set_material")
+            core.set_material(body, friction=friction, restitution=restitution)
+            m = core.material(body)
+            self._edited("material", body=body, friction=m.friction, restitution=m.restitution)
+
+    def material_target(self, name: str) -> tuple[str, str] | None:
+        """(body, ``friction`` or ``restitution``) when ``name`` is ``<core>.<body>.friction`` or
+        ``.restitution`` (or without the core's name) of a body of the core, else None."""
+        core = self._core
+        if core is None:
+            return None
+        rest = name[len(core.name) + 1:] if name.startswith(f"{core.name}.") else name
+        body, _, key = rest.rpartition(".")
+        if key in ("friction", "restitution") and body in core.bodies():
+            return body, key
+        return None
 
     def remove_joint(self, name: str) -> None:
         with self._lock:
@@ -493,7 +605,7 @@ class World:
         if self._core is not None:
             self._core.refresh_outputs()
 
-    def _edited(self, kind: str, **detail: Any) -> None:
+    def _edited(self, kind: str, /, **detail: Any) -> None:
         self._dirty = True
         self._emit(kind, **detail)
 
@@ -507,13 +619,28 @@ class World:
             if slot is not None:
                 value = self._buf[slot.start:slot.start + slot.size]
                 return float(value[0]) if slot.shape == () else value.reshape(slot.shape).copy()
+            material = self.material_target(name) if self._resolve_param(name) is None else None
+            if material is not None:
+                return getattr(self._core.material(material[0]), material[1])  # type: ignore[union-attr]
             module, key = self._split_param(name)
             return module.params[key]
 
+    def _resolve_param(self, name: str) -> tuple[Module, str] | None:
+        module_name, sep, key = name.partition(".")
+        rec = self._structure.record(module_name) if sep else None
+        return (rec.module, key) if rec is not None and key in rec.module.param_specs() else None
+
     def set(self, name: str, value: Any) -> None:
-        """Set a run-time parameter (``module.param``) or an unconnected input (``module.port``)."""
+        """Set a run-time parameter (``module.param``), an unconnected input (``module.port``) or a body's
+        own friction or restitution (``core.<body>.friction``, ``.restitution``: `set_material`; None
+        gives the body the core's again)."""
         with self._lock:
             self._check_open()
+            if self._resolve_signal(name) is None and self._resolve_param(name) is None:
+                material = self.material_target(name)
+                if material is not None:
+                    self.set_material(material[0], **{material[1]: value})
+                    return
             target = self.settable(name)
             if isinstance(target, str):
                 slot = self._structure.layout.slots[target]
@@ -591,7 +718,7 @@ class World:
         with self._lock:
             self._observers.remove(observer)
 
-    def _emit(self, kind: str, **detail: Any) -> None:
+    def _emit(self, kind: str, /, **detail: Any) -> None:
         if not self._observers:
             return
         event = WorldEvent(self._tick, kind, detail, self._source)
@@ -998,6 +1125,25 @@ def _same_params(current: dict[str, Any], values: dict[str, Any]) -> dict[str, A
         elif type(mine) is not type(value) or mine != value:
             return values
     return current
+
+
+def _body_detail(spec: BodySpec) -> dict[str, Any]:
+    """A body's spec as plain values in SI (an event's detail: logs, replay)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(spec):
+        value = getattr(spec, f.name)
+        if f.name == "line" or value is None:
+            continue
+        out[f.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else (
+            list(value) if isinstance(value, tuple) else value)
+    return out
+
+
+def _world_values(value: Sequence[Any], key: str) -> list[float]:
+    """A joint's axis or anchor as numbers in SI (an event's detail; the core has checked them)."""
+    from .bodies import quantities
+
+    return [float(x) for x in quantities(value, 3, "length" if key == "anchor" else None)]
 
 
 def _read_only(buf: np.ndarray) -> np.ndarray:

@@ -1,8 +1,10 @@
 """Scenario events: edits the world makes at given times.
 
-``{at: 1s, set: {core.restitution: 0.8}}``, ``add: {module...}``, ``remove: name``,
-``make: [objects]``, ``make_joint: [a, b]``, ``no_collision: [objects]``,
-``place: {body: [x, y, z]}``, ``connect: [src, dst]``, ``disconnect: dst``.
+``{at: 1s, set: {core.restitution: 0.8}}``, ``add_body: {box: {name: b, size: [...], ...}}`` (a body,
+written as a scene item), ``add: {module...}``, ``remove: name``, ``make: [objects]``,
+``make_joint: [a, b]`` (a weld) or ``{a: x, b: y, kind: hinge, axis: [0, 1, 0], anchor: [0, 0, 1m]}``,
+``no_collision: [objects]``, ``place: {body: [x, y, z]}``, ``connect: [src, dst]``, ``disconnect: dst``,
+``remove_body: name``. ``set`` also takes a body's own ``core.<body>.friction`` and ``.restitution``.
 One event may hold several of these; they apply in that order. Every event is checked at load, in
 time order, against the structure the events before it leave (a `Timeline`: which modules exist,
 which inputs are driven), so that removing a module twice, connecting an input already driven or
@@ -18,18 +20,20 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from ..kernel.errors import DynabrainError
+from ..kernel.bodies import joint_kind
+from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import format_duration, parse_duration_ns
 from ..kernel.world import World, as_connection, expand_names
-from .limits import CORE_LIMITS, Duration, check_magnitudes, param_problem, short
-from .scene import parse_pose
+from .limits import CORE_LIMITS, MAX_FRICTION, Duration, bounded, check_magnitudes, param_problem, short
+from .scene import parse_body, parse_pose, parse_vector
 
 if TYPE_CHECKING:
     from ..kernel.yamlsrc import Path
     from .model import ModuleCfg, _Builder
 
-EVENT_KINDS = ("set", "add", "remove", "make", "make_joint", "no_collision", "place", "connect", "disconnect")
+EVENT_KINDS = ("add_body", "set", "add", "remove", "make", "make_joint", "no_collision", "place", "connect",
+               "disconnect", "remove_body")
 
 
 class EventCfg(BaseModel):
@@ -40,11 +44,13 @@ class EventCfg(BaseModel):
     add: ModuleCfgRef | None = None
     remove: str | None = None
     make: list[str] | None = None
-    make_joint: list[str] | None = None
+    make_joint: list[str] | dict[str, Any] | None = None
     no_collision: list[str] | None = None
     place: dict[str, Any] | None = None
     connect: list[Any] | None = None
     disconnect: str | None = None
+    add_body: dict[str, Any] | None = None
+    remove_body: str | None = None
 
 
 @dataclass
@@ -58,11 +64,30 @@ class Timeline:
     """The objects simulated (`make`); None without a physics core."""
     joints: set[str] = field(default_factory=set)
     """Joints made by `make_joint` events."""
+    bodies: dict[str, str | None] = field(default_factory=dict)
+    """Every body present -> the object it belongs to (None: it is one), in body order."""
+    added: set[str] = field(default_factory=set)
+    """Bodies `add_body` events add (their ports are checked when they exist)."""
 
     @classmethod
     def of(cls, world: World) -> Timeline:
-        selection = None if world.core is None else set(world.core.selection)
-        return cls(set(world.modules), {c.dst: c.src for c in world.connections}, selection)
+        core = world.core
+        selection = None if core is None else set(core.selection)
+        out = cls(set(world.modules), {c.dst: c.src for c in world.connections}, selection)
+        for body in core.bodies() if core is not None else ():
+            top = core.body_info(body).parent
+            while top is not None and core.body_info(top).parent is not None:
+                top = core.body_info(top).parent
+            out.bodies[body] = top
+        return out
+
+    def objects(self) -> list[str]:
+        return [b for b, top in self.bodies.items() if top is None]
+
+    def body_port(self, name: str, core: str | None) -> bool:
+        """Whether ``name`` is a port of the core (``core.<body>.<port>``) of a body an event adds."""
+        rest = name[len(core) + 1:] if core is not None and name.startswith(f"{core}.") else None
+        return rest is not None and rest.rpartition(".")[0] in self.added
 
     def module_of(self, signal: str) -> str:
         return signal.partition(".")[0]
@@ -135,6 +160,14 @@ def _set(value: dict[str, Any], world: World, builder: _Builder, path: Path):
             continue
         if module in builder.later_modules and module not in world.modules:
             continue  # a module an earlier event adds: its ports and parameters are checked when it fires
+        material = _material(name, world, timeline)
+        if material is not None:
+            problem = _material_problem(material, val)
+            if problem:
+                builder.report((*path, name), problem)
+            continue
+        if timeline.body_port(name, world.core.name if world.core is not None else None):
+            continue  # a port of a body an earlier event adds: checked when it fires
         try:
             target = world.settable(name)
         except DynabrainError as exc:
@@ -221,31 +254,138 @@ def _objects(call: str):
         if core is None:
             builder.report(path, f"{call} needs a physics core")
             return lambda w: None
-        known = core.objects() if call == "make" else core.bodies()
+        timeline = builder.timeline
+        known = timeline.objects() if call == "make" else list(timeline.bodies)
         kind = "object" if call == "make" else "body"
+        if call == "make_joint":
+            return _make_joint(value, world, builder, path, known)
         chosen: list[str] = []
         for i, name in enumerate(value):
             try:
                 chosen += [n for n in expand_names([name], known, kind, call) if n not in chosen]
             except DynabrainError as exc:
                 builder.report((*path, i), str(exc))
-        timeline = builder.timeline
         if call == "make":
             timeline.selection = set(chosen)
         elif call == "no_collision" and len(chosen) < 2 and len(chosen) == len(value):
             builder.report(path, f"no_collision needs at least two bodies, got {short(value)}")
-        elif call == "make_joint":
-            if len(value) != 2 or len(set(value)) != 2 or any(n not in known for n in value):
-                builder.report(path, f"make_joint takes two different bodies by name: [a, b], got {short(value)}")
-            else:
-                joint = f"joint_{value[0]}_{value[1]}"
-                if joint in timeline.joints:
-                    builder.report(path, f"the joint {joint!r} is made already at this time")
-                timeline.joints.add(joint)
-            return lambda w: w.make_joint(value[0], value[1])
         return lambda w: getattr(w, call)(value)
 
     return check
+
+
+_JOINT_KEYS = ("a", "b", "kind", "axis", "anchor", "name")
+
+
+def _make_joint(value: Any, world: World, builder: _Builder, path: Path, known: list[str]):
+    """``[a, b]`` (a weld) or ``{a, b, kind, axis, anchor, name}``, checked against the bodies present."""
+    fields = dict(zip(("a", "b"), value, strict=False)) if isinstance(value, list) else dict(value)
+    if isinstance(value, list) and len(value) != 2:
+        builder.report(path, f"make_joint takes two different bodies by name: [a, b], got {short(value)}")
+        return lambda w: None
+    for key in fields:
+        if key not in _JOINT_KEYS:
+            builder.report((*path, key), f"unknown key {key!r}" + did_you_mean(str(key), _JOINT_KEYS)
+                           + f"; make_joint takes {', '.join(_JOINT_KEYS)}")
+    a, b = fields.get("a"), fields.get("b")
+    if a == b or any(not isinstance(n, str) or n not in known for n in (a, b)):
+        where = path if isinstance(value, list) else (*path, "b" if a == b else "a" if a not in known else "b")
+        listed = ", ".join(known[:20]) + (", ..." if len(known) > 20 else "")
+        builder.report(where, f"make_joint: a joint between a body and itself ({short(a)}); it takes two different "
+                       "bodies" if a == b else f"make_joint takes two bodies by name, got {short(a)} and {short(b)}; "
+                       f"bodies at this time: {listed}")
+        return lambda w: None
+    kwargs: dict[str, Any] = {}
+    try:
+        kind = joint_kind(fields.get("kind", "weld"))
+        made = getattr(world.core, "MADE_JOINTS", ("weld",))
+        if kind not in made:
+            raise UnitError(f"the {world.core.ENGINE} core cannot make a {kind} joint (it makes: {', '.join(made)})")
+        kwargs["kind"] = kind
+    except UnitError as exc:
+        builder.report((*path, "kind"), str(exc))
+    for key, dim in (("axis", None), ("anchor", "length")):
+        if key in fields:
+            try:
+                if kwargs.get("kind") == "weld" or (key == "axis" and kwargs.get("kind") == "ball"):
+                    raise UnitError(f"a {kwargs['kind']} joint takes no {key}")
+                kwargs[key] = parse_vector(fields[key], 3, dim)
+                if key == "axis" and not any(kwargs[key]):
+                    raise UnitError("the axis cannot be zero")
+            except (DynabrainError, TypeError, ValueError) as exc:
+                builder.report((*path, key), str(exc))
+    name = fields.get("name")
+    if name is not None and not isinstance(name, str):
+        builder.report((*path, "name"), f"a joint's name is a string, got {short(name)}")
+    joint = name or f"joint_{a}_{b}"
+    if joint in builder.timeline.joints:
+        builder.report(path, f"the joint {joint!r} is made already at this time")
+    builder.timeline.joints.add(joint)
+    return lambda w: w.make_joint(a, b, name, **kwargs)
+
+
+def _material(name: str, world: World, timeline: Timeline) -> tuple[str, str] | None:
+    """(body, friction or restitution) when ``name`` is a body's own coefficient (``core.<body>.friction``)."""
+    core = world.core
+    if core is None or not name.startswith(f"{core.name}."):
+        return None
+    body, _, key = name[len(core.name) + 1:].rpartition(".")
+    return (body, key) if key in ("friction", "restitution") and body in timeline.bodies else None
+
+
+def _material_problem(material: tuple[str, str], value: Any) -> str | None:
+    if value is None:
+        return None  # the core's coefficient again
+    high = 1.0 if material[1] == "restitution" else MAX_FRICTION
+    try:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise UnitError(f"{material[1]} is a number (or null: the core's), got {short(value)}")
+        bounded(float(value), material[1], 0.0, high)
+    except UnitError as exc:
+        return str(exc)
+    return None
+
+
+def _add_body(value: dict[str, Any], world: World, builder: _Builder, path: Path):
+    timeline = builder.timeline
+    if world.core is None:
+        builder.report(path, "add_body needs a physics core")
+        return lambda w: None
+    spec, problems = parse_body(value, builder.src, path)
+    builder.problems += problems
+    if spec is None:
+        return lambda w: None
+    if spec.name in timeline.bodies or spec.name in world.core.joints():
+        shape = next(iter(value))
+        builder.report((*path, shape, "name"), f"add_body: a body named {spec.name!r} exists at this time")
+        return lambda w: None
+    timeline.bodies[spec.name] = None
+    timeline.added.add(spec.name)
+    if timeline.selection is not None:
+        timeline.selection.add(spec.name)  # a new body is simulated
+    builder.later_modules.add(spec.name)  # (so that expectations may read it)
+    return lambda w: w.add_body(spec)
+
+
+def _remove_body(value: str, world: World, builder: _Builder, path: Path):
+    timeline = builder.timeline
+    core = world.core
+    objects = timeline.objects()
+    if core is None:
+        builder.report(path, "remove_body needs a physics core")
+    elif value not in objects:
+        what = f"{value!r} is part of object {timeline.bodies[value]!r}" if value in timeline.bodies else \
+            f"no object {value!r} at this time" + did_you_mean(str(value), objects)
+        builder.report(path, f"remove_body: {what}")
+    elif core.scene.model and value not in timeline.added:
+        builder.report(path, f"remove_body: {value!r} comes from the model file; bodies added at run time and the "
+                             "primitives of a scene can be removed")
+    else:
+        timeline.bodies = {b: top for b, top in timeline.bodies.items() if value not in (b, top)}
+        timeline.added.discard(value)
+        if timeline.selection is not None:
+            timeline.selection.discard(value)
+    return lambda w: w.remove_body(value)
 
 
 def _place(value: dict[str, Any], world: World, builder: _Builder, path: Path):
@@ -255,11 +395,12 @@ def _place(value: dict[str, Any], world: World, builder: _Builder, path: Path):
         return lambda w: None
     poses = {}
     selection = builder.timeline.selection
+    bodies = builder.timeline.bodies
     for name, pose in value.items():
-        if name not in core.bodies():
-            builder.report((*path, name), f"unknown body {name!r}" + did_you_mean(name, core.bodies()))
+        if name not in bodies:
+            builder.report((*path, name), f"unknown body {name!r} at this time" + did_you_mean(name, list(bodies)))
             continue
-        if name not in core.objects():
+        if bodies[name] is not None:
             builder.report((*path, name), f"place moves a free body, and {name!r} is part of another object")
             continue
         if selection is not None and name not in selection:
@@ -313,6 +454,8 @@ def _check_signal(world: World, builder: _Builder, name: str, path: Path) -> boo
     module = name.partition(".")[0]
     if module in builder.later_modules and module not in world.modules:
         return True
+    if builder.timeline.body_port(name, world.core.name if world.core is not None else None):
+        return True  # a port of a body an event adds
     try:
         world.get(name)
     except DynabrainError as exc:
@@ -324,4 +467,5 @@ def _check_signal(world: World, builder: _Builder, name: str, path: Path) -> boo
 _CHECKS = {
     "set": _set, "add": _add, "remove": _remove, "make": _objects("make"), "make_joint": _objects("make_joint"),
     "no_collision": _objects("no_collision"), "place": _place, "connect": _connect, "disconnect": _disconnect,
+    "add_body": _add_body, "remove_body": _remove_body,
 }

@@ -4,7 +4,8 @@
 plane, box (full edge lengths), sphere ([radius]), capsule and cylinder ([radius, length]).
 ``joint:`` is ``free`` (the default for a top-level body), ``fixed``, or ``{hinge: {axis, anchor,
 range, damping}}`` / ``{slide: {...}}`` (a hinge range is in degrees unless a unit says otherwise);
-``parent:`` attaches a body to another.
+``parent:`` attaches a body to another. ``friction:`` and ``restitution:`` are the body's own
+coefficients (the core's otherwise; `PhysicsCore.set_material` changes them at run time).
 ``euler: [rx, ry, rz]`` (degrees, applied x then y then z) may replace ``quat``.
 ``- grid: {of: {box: {...}}, count: [nx, ny], spacing: [dx, dy]}`` repeats a shape on a grid; the
 copies are named ``<name>_<i>_<j>`` and placed at ``pos + (i*dx, j*dy, 0)``.
@@ -24,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from ..kernel.bodies import parse_color
 from ..kernel.core import COLORS, FLEX_SHAPES, JOINT_KINDS, SHAPES, BodySpec, CableSpec, JointSpec, SceneSpec
 from ..kernel.errors import DynabrainError, Problem, UnitError
 from ..kernel.suggest import did_you_mean
@@ -32,7 +34,7 @@ from ..kernel.yamlsrc import Path, YamlSource
 from . import limits
 from .limits import bounded, short
 
-_BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction")
+_BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction", "restitution")
 _JOINT_KEYS = ("name", "axis", "anchor", "range", "damping")
 _SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,)}
 _CABLE_KEYS = ("name", "from", "to", "radius", "mass", "segments", "stiffness", "bending", "damping", "attach",
@@ -181,8 +183,31 @@ def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: 
         quat=quat, mass=field("mass", _mass),
         color=field("color", _color, COLORS["grey"]), joint=joint, parent=parent,
         friction=field("friction", _friction), line=src.line(path),
+        restitution=field("restitution", _restitution),
     )
     return body if len(problems) == before else None
+
+
+def parse_body(item: Any, src: YamlSource, path: Path) -> tuple[BodySpec | None, list[Problem]]:
+    """One rigid body written as a scene item (``{box: {name: ..., size: ...}}``) at ``path`` (a scenario
+    event's ``add_body``), with the problems found (each with its line)."""
+    problems: list[Problem] = []
+    if not isinstance(item, dict) or len(item) != 1:
+        return None, [src.problem(path, "a body is one shape: {box: {name: ..., size: [...], ...}}")]
+    (shape, fields), = item.items()
+    if shape not in SHAPES or shape == "plane":
+        shapes = [s for s in SHAPES if s != "plane"]
+        return None, [src.problem(path, f"a body added at run time is one of {', '.join(shapes)}, got {shape!r}"
+                                  + did_you_mean(str(shape), shapes))]
+    try:
+        body = _body(shape, fields or {}, src, (*path, shape), problems)
+    except (DynabrainError, ValueError, TypeError, ArithmeticError) as exc:
+        return None, [src.problem((*path, shape), str(exc))]
+    if body is not None and body.parent is not None:
+        problems.append(src.problem((*path, shape, "parent"), "a body added at run time is top-level (join it to "
+                                    "another with make_joint)"))
+        body = None
+    return body, problems
 
 
 def _cable(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
@@ -260,6 +285,10 @@ def _above_zero(dimension: str | None, what: str, high: float):
 
 
 _friction = _above_zero(None, "friction", limits.MAX_FRICTION)
+
+
+def _restitution(value: Any) -> float:
+    return _quantity(value, None, "restitution", 0.0, 1.0)
 _mass = _above_zero("mass", "mass", limits.MAX_MASS_KG)
 
 
@@ -277,6 +306,12 @@ def _vector(value: Any, n: int | None, dimension: str | None = None, default_uni
             v = f"{v}{default_unit}"
         out.append(_quantity(v, dimension, dimension or "a number", -limit, limit))
     return tuple(out)
+
+
+def parse_vector(value: Any, n: int | None, dimension: str | None = None) -> tuple:
+    """A list of ``n`` quantities in SI units, each finite and within the scenario's limits (an event's
+    axis or anchor)."""
+    return _vector(value, n, dimension)
 
 
 def parse_pose(value: Any) -> tuple[tuple, tuple | None]:
@@ -316,15 +351,8 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _color(value: Any) -> tuple:
-    if isinstance(value, str):
-        if value not in COLORS:
-            raise UnitError(f"unknown colour {value!r}" + did_you_mean(value, COLORS)
-                            + f"; colours: {', '.join(COLORS)}")
-        return COLORS[value]
-    rgba = _vector(value, None)
-    if len(rgba) not in (3, 4) or not all(0 <= c <= 1 for c in rgba):
-        raise UnitError("a colour is a name or [r, g, b(, a)] in 0..1")
-    return rgba if len(rgba) == 4 else (*rgba, 1.0)
+    """A colour name or [r, g, b(, a)] (the kernel's rule, which `BodySpec` applies to the Python API too)."""
+    return parse_color(value if isinstance(value, str) else _vector(value, None))
 
 
 def _joint(value: Any) -> JointSpec:
