@@ -1,5 +1,7 @@
 """The live view: a real foxglove-sdk WebSocket server on loopback, read by a minimal client speaking
-the Foxglove WebSocket protocol (subscribe, then binary message frames)."""
+the Foxglove WebSocket protocol (subscribe, then binary message frames), and by the ``websockets``
+package's client: a client that connects late still gets the scene and the state, and the view sends
+every tick or every n-th, as asked."""
 
 from __future__ import annotations
 
@@ -81,7 +83,7 @@ def test_live_view_serves_the_bus_and_poses_over_websocket():
         client.send({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channels["/bus"]["id"]},
                                                           {"id": 2, "channelId": channels["/tf"]["id"]}]})
         codec = BusCodec.from_view(WorldView(world).signal_slots(), world.snapshot().bus.size, FieldNumbers(), 1)
-        seen, got = {}, {1: [], 2: []}
+        seen, got = {world.tick_count: world.snapshot().bus}, {1: [], 2: []}  # the latest state comes at once
         while not got[1]:  # the subscription is live once a message arrives
             world.tick()
             seen[world.tick_count] = world.snapshot().bus
@@ -89,11 +91,11 @@ def test_live_view_serves_the_bus_and_poses_over_websocket():
         for _ in range(3):
             world.tick()
             seen[world.tick_count] = world.snapshot().bus
-        last = world.tick_count * 2_000_000
+        last = live.origin_ns + world.tick_count * 2_000_000  # log time: the wall-clock start + simulated time
         assert _read_until(client, got, lambda: got[1][-1][0] == last and got[2][-1][0] == last, timeout=10)
         for t_ns, payload in got[1]:
             rows, ticks, _epochs = codec.decode(np.frombuffer(payload, dtype=np.uint8))
-            assert ticks[0] * 2_000_000 == t_ns and rows[0].tobytes() == seen[int(ticks[0])].tobytes()
+            assert live.origin_ns + ticks[0] * 2_000_000 == t_ns and rows[0].tobytes() == seen[int(ticks[0])].tobytes()
         assert len(got[1]) >= 4
         tf = FrameTransforms.FromString(got[2][-1][1])
         aa = next(t for t in tf.transforms if t.child_frame_id == "aa")
@@ -128,6 +130,114 @@ def test_run_live_prints_where_it_serves(monkeypatch):
     from dynabrain.orchestrator.cli.main import app
 
     monkeypatch.setenv("DYNABRAIN_LIVE_PORT", "0")
-    result = CliRunner().invoke(app, ["run", str(SCENARIOS / "two_cubes.yaml"), "--live", "--duration", "5s", "-q"])
+    result = CliRunner().invoke(app, ["run", str(SCENARIOS / "two_cubes.yaml"), "--live", "--no-realtime",
+                                      "--live-rate", "50", "-q"])
     assert result.exit_code == 0, result.output
-    assert "live view: ws://127.0.0.1:" in result.output
+    assert "live view: ws://127.0.0.1:" in result.output and "50 Hz of simulated time" in result.output
+
+
+@pytest.mark.parametrize(("args", "paced"), [(["--live"], True), (["--live", "--no-realtime"], False),
+                                             ([], None), (["--realtime"], True)])
+def test_live_paces_the_run_at_real_time_unless_told_otherwise(monkeypatch, args, paced):
+    from typer.testing import CliRunner
+
+    from dynabrain.orchestrator.cli import main
+
+    asked = []
+
+    def runner(sc, world, *, progress=None, realtime=None):
+        asked.append(realtime)
+        return real(sc, world, progress=progress, realtime=False)
+
+    real = main.run_scenario
+    monkeypatch.setattr(main, "run_scenario", runner)
+    monkeypatch.setenv("DYNABRAIN_LIVE_PORT", "0")
+    result = CliRunner().invoke(main.app, ["run", str(SCENARIOS / "two_cubes.yaml"), *args, "-q"])
+    assert result.exit_code == 0, result.output
+    assert asked == [paced]  # None: as the scenario says (two_cubes: not paced)
+
+
+class Late:
+    """A Foxglove WebSocket client made with the ``websockets`` package (its sync client)."""
+
+    def __init__(self, port: int):
+        from websockets.sync.client import connect
+
+        self.ws = connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], open_timeout=10, legacy=True)
+        self.channels: dict[str, dict] = {}
+        self.subs: dict[int, str] = {}
+        self.got: dict[str, list[tuple[int, bytes]]] = {}
+
+    def advertised(self, topics: set[str]) -> None:
+        while not topics <= set(self.channels):
+            msg = self.ws.recv(timeout=10)
+            if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+                self.channels.update({c["topic"]: c for c in json.loads(msg)["channels"]})
+
+    def subscribe(self, topics: list[str]) -> None:
+        subs = [{"id": i + 1, "channelId": self.channels[t]["id"]} for i, t in enumerate(topics)]
+        self.subs = {s["id"]: t for s, t in zip(subs, topics, strict=True)}
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def read(self, done, timeout: float = 10) -> bool:
+        """Message frames (topic -> [(log time, payload)]) until ``done()`` or ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while not done():
+            try:
+                msg = self.ws.recv(timeout=max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
+                return False
+            if isinstance(msg, bytes) and msg[0] == 0x01:
+                sub, t_ns = struct.unpack_from("<IQ", msg, 1)
+                self.got.setdefault(self.subs[sub], []).append((t_ns, msg[13:]))
+        return True
+
+
+def test_a_client_that_connects_late_gets_the_scene_and_the_state():
+    from foxglove_schemas_protobuf.Log_pb2 import Log
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    world = load_scenario(SCENARIOS / "two_cubes.yaml").build()
+    live = LiveView(port=0).attach(world)
+    try:
+        world.tick(50)
+        world.set("core.friction", 0.5)
+        world.tick(25)  # the run is over before anyone looks: nothing ticks any more
+        client = Late(live.port)
+        assert client.ws.subprotocol == "foxglove.sdk.v1"
+        topics = ["/scene", "/bus", "/tf", "/events"]
+        client.advertised(set(topics))
+        client.subscribe(topics)
+        assert client.read(lambda: set(topics) <= set(client.got))
+        t_end = live.origin_ns + 75 * 2_000_000
+        (t_bus, bus), = client.got["/bus"]
+        codec = BusCodec.from_view(WorldView(world).signal_slots(), world.snapshot().bus.size, FieldNumbers(), 1)
+        rows, ticks, _epochs = codec.decode(np.frombuffer(bus, dtype=np.uint8))
+        assert ticks[0] == 75 and t_bus == t_end and rows[0].tobytes() == world.snapshot().bus.tobytes()
+        (t_tf, tf), = client.got["/tf"]
+        aa = next(t for t in FrameTransforms.FromString(tf).transforms if t.child_frame_id == "aa")
+        assert t_tf == t_end and aa.translation.z == world.get("aa.pos")[2]
+        scene = SceneUpdate.FromString(client.got["/scene"][0][1])
+        assert {e.id for e in scene.entities} >= {"aa", "bb"}
+        kinds = [Log.FromString(m).name for _t, m in client.got["/events"]]
+        assert "param" in kinds
+    finally:
+        world.close()
+
+
+@pytest.mark.parametrize("every", [1, 5])
+def test_the_view_sends_every_tick_or_every_nth(every):
+    world = load_scenario(SCENARIOS / "two_cubes.yaml").build()
+    live = LiveView(port=0, every=every).attach(world)
+    try:
+        client = Late(live.port)
+        client.advertised({"/bus"})
+        client.subscribe(["/bus"])
+        assert client.read(lambda: client.got.get("/bus"))  # the latest state, at once
+        world.tick(100)
+        last = live.origin_ns + 100 * 2_000_000
+        assert client.read(lambda: client.got["/bus"][-1][0] == last)
+        ticks = [(t - live.origin_ns) // 2_000_000 for t, _m in client.got["/bus"]]
+        assert ticks == [0, *range(every, 101, every)] and live.sent == len(ticks)
+    finally:
+        world.close()

@@ -45,9 +45,11 @@ class RunOutputs:
                 input()
 
 
-def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: bool, console: Console) -> RunOutputs:
+def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: bool, console: Console,
+                       live_rate_hz: float = 0.0) -> RunOutputs:
     """Attach the MCAP logger (``--log FILE``, else the scenario's ``log: {mcap: FILE}``, resolved against
-    the scenario's folder) and the live view (``--live``) a run asks for."""
+    the scenario's folder) and the live view (``--live``; ``live_rate_hz``: ticks sent per simulated
+    second, 0 for every tick) a run asks for."""
     from ..logs.logger import McapLogger
 
     cfg = scenario.model.log
@@ -71,8 +73,11 @@ def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: boo
         port = os.environ.get(LIVE_PORT_ENV, str(DEFAULT_PORT))
         if not port.isdigit():
             raise DynabrainError(f"{LIVE_PORT_ENV}={port!r} is not a port number")
-        view = LiveView(port=int(port)).attach(world)
-        console.print(f"live view: {view.url} (Foxglove: Open connection > Foxglove WebSocket)", markup=False)
+        every = max(1, round(1e9 / (live_rate_hz * world.dt_ns))) if live_rate_hz > 0 else 1
+        view = LiveView(port=int(port), every=every).attach(world)
+        rate = f"{1e9 / (every * world.dt_ns):g} Hz of simulated time" + (" (every tick)" if every == 1 else "")
+        console.print(f"live view: {view.url} (Foxglove: Open connection > Foxglove WebSocket), {rate}",
+                      markup=False)
     return RunOutputs(logger, view, console)
 
 

@@ -1,8 +1,16 @@
 """The ``dynabrain`` command line. Exit codes: 0 ok, 1 an expectation failed or a run failed,
-2 bad input (a scenario that does not validate)."""
+2 bad input (a scenario that does not validate).
+
+Options before the command: ``--version``; ``-v`` / ``--verbose`` (dynabrain's log messages from INFO
+on, ``-vv`` from DEBUG; by default warnings and errors), ``-q`` / ``--quiet`` (errors only, and no
+progress bar); ``--install-completion`` / ``--show-completion`` (shell completion).
+"""
 
 from __future__ import annotations
 
+import logging
+import sys
+from importlib import metadata as importlib_metadata
 from pathlib import Path
 
 import typer
@@ -14,19 +22,56 @@ from ..kernel.errors import DynabrainError, ScenarioError
 from ..kernel.units import format_duration
 from ..scenario.runner import RunResult, run_scenario
 from .common import console, err_console, fail_scenario, load_or_exit
+from .examples import resolve_scenario
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="dynabrain: a co-simulation orchestrator a robot brain embeds.")
+app = typer.Typer(no_args_is_help=True, help="dynabrain: a co-simulation orchestrator a robot brain embeds.")
+_quiet = False
+"""``-q`` before the command: no progress bar either."""
+
+
+def _version(value: bool) -> None:
+    if value:
+        try:
+            version = importlib_metadata.version("dynabrain")
+        except importlib_metadata.PackageNotFoundError:
+            version = "unknown (not installed)"
+        console.print(f"dynabrain {version}", markup=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                          help="print the version and exit"),
+             verbose: int = typer.Option(0, "--verbose", "-v", count=True,
+                                         help="more messages: -v info, -vv debug"),
+             quiet: bool = typer.Option(False, "--quiet", "-q", help="errors only, and no progress bar")) -> None:
+    """dynabrain: a co-simulation orchestrator a robot brain embeds."""
+    global _quiet
+    _quiet = quiet
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO, logging.DEBUG)[min(verbose, 2)]
+    root = logging.getLogger("dynabrain")
+    root.setLevel(level)
+    if not any(getattr(h, "_dynabrain_cli", False) for h in root.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        handler._dynabrain_cli = True  # type: ignore[attr-defined]
+        root.addHandler(handler)
 
 
 @app.command()
-def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
-        realtime: bool = typer.Option(False, "--realtime", help="pace the run at real time"),
+def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the name of a shipped one (two_cubes)"),
+        realtime: bool | None = typer.Option(None, "--realtime/--no-realtime",
+                                             help="pace the run at real time (default: with --live, or as the "
+                                                  "scenario says)"),
         duration: str | None = typer.Option(None, help="override world.duration (e.g. 2s)"),
         log: Path | None = typer.Option(None, "--log", help="record the run to an MCAP file"),
-        live: bool = typer.Option(False, "--live", help="serve the run to Foxglove over WebSocket (loopback)"),
+        live: bool = typer.Option(False, "--live", help="serve the run to Foxglove over WebSocket (loopback); "
+                                                        "paces it at real time unless --no-realtime"),
+        live_rate: float = typer.Option(0.0, "--live-rate", min=0.0,
+                                        help="--live: ticks sent per simulated second (0: every tick)"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar")) -> None:
     """Run a scenario to its end and check its expectations."""
+    scenario = resolve_scenario(scenario)
     sc = load_or_exit(scenario)
     if duration is not None:
         sc.duration_ns = _duration_option(duration)
@@ -37,15 +82,17 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file"),
     from .log import attach_run_outputs
 
     try:
-        outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console)
+        outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console, live_rate_hz=live_rate)
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[t]}"),
-                      TimeRemainingColumn(), console=console, transient=True, disable=quiet) as bar:
+                      TimeRemainingColumn(), console=console, transient=True, disable=quiet or _quiet) as bar:
             task = bar.add_task(sc.model.name, total=sc.duration_ns // world.dt_ns, t="")
 
             def progress(done: int, total: int) -> None:
                 bar.update(task, completed=done, t=f"t={done * world.dt_ns / 1e9:.3f}s")
 
-            result = run_scenario(sc, world, progress=progress, realtime=True if realtime else None)
+            if realtime is None:  # a live view is watched: at real time, unless told otherwise
+                realtime = True if live else None
+            result = run_scenario(sc, world, progress=progress, realtime=realtime)
         history = world.history.describe()
         outputs.finish(result)
     finally:
@@ -121,11 +168,12 @@ def check(scenario: Path = typer.Argument(..., help="scenario YAML file")) -> No
 
 def _register_plugins() -> None:
     """Command groups that live in their own files (FMU authoring, logs, the Zenoh bridge)."""
-    from . import fmu, log, serve
+    from . import examples, fmu, log, serve
 
     fmu.register(app)
     log.register(app)
     serve.register(app)
+    examples.register(app)
 
 
 _register_plugins()
