@@ -17,6 +17,7 @@ from mcap.writer import Writer
 from typer.testing import CliRunner
 
 from dynabrain.orchestrator.cli.main import app
+from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.logs.read import read_index
 from dynabrain.orchestrator.logs.verify import verify
 
@@ -208,3 +209,26 @@ def test_the_scenario_log_setting_and_a_world_without_a_core(tmp_path):
     assert verify(path).ok
     code, out = dyn("plot", path, "wave.y", "noise.y[1]")
     assert code == 0 and (tmp_path / "runs" / "signals.png").exists()
+
+
+def test_plot_names_rows_and_columns_and_groups_event_labels(tmp_path):
+    from dynabrain.orchestrator.logs.logger import McapLogger
+    from dynabrain.orchestrator.logs.plot import event_groups, resolve
+    from dynabrain.orchestrator.scenario.model import load_scenario
+
+    sc = load_scenario(SCENARIOS / "humanoid_stand.yaml")
+    world = sc.build()
+    McapLogger(tmp_path / "h.mcap").attach(world, sc)
+    world.tick(20)
+    world.close()
+    index = read_index(tmp_path / "h.mcap")
+    cop = resolve(index, "zmp.cop")  # (2, 3): a row per foot (the ports that view them), a column per axis
+    assert cop.labels == ("[l_foot, x]", "[l_foot, y]", "[l_foot, z]", "[r_foot, x]", "[r_foot, y]", "[r_foot, z]")
+    assert [resolve(index, s).component for s in ("zmp.cop[r_foot, z]", "zmp.cop[1, 2]", "zmp.cop[5]")] == [5, 5, 5]
+    assert resolve(index, "core.torso.quat").labels == ("[w]", "[x]", "[y]", "[z]")
+    with pytest.raises(DynabrainError, match=r"\[heel\] is no index of dimension 0 of zmp.cop \(0..1 or l_foot"):
+        resolve(index, "zmp.cop[heel, x]")
+    code, out = dyn("plot", tmp_path / "h.mcap", "zmp.cop", "zmp.cop[l_foot, y]")
+    assert code == 0, out
+    many = [(0.001 * k, "set") for k in range(30)] + [(0.5, "param"), (0.5, "set"), (2.0, "rollback")]
+    assert event_groups(many, gap=0.05) == [(0.0, "set x30"), (0.5, "param, set"), (2.0, "rollback")]
