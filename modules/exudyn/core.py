@@ -447,6 +447,10 @@ class ExudynCore(EditedCore):
     def _reserved_joint_names(self) -> set[str]:
         return set(self._top.joints) | set(self._top.bodies)
 
+    def _ports_of(self, edits: Edits) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
+        view = self._top_view(edits)
+        return view.ports_in, view.ports_out
+
     def _body_spec(self, body: str) -> BodySpec | None:
         return self._top.spec.get(body)
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import exudyn as exu
 import numpy as np
 from exudyn.itemInterface import (
     MarkerBodyRigid,
@@ -51,15 +52,13 @@ def build(system, welds) -> list[Spring]:
     for w in welds:
         sides = [_side(system, w, body, pos, quat) for body, pos, quat in ((w.a, w.data.pos_a, w.data.quat_a),
                                                                            (w.b, w.data.pos_b, w.data.quat_b))]
-        if all(s[2] == np.inf for s in sides):
+        if all(s[1] == np.inf for s in sides):
             continue  # both sides static (frozen, or welded to the world): nothing moves
-        mass = 1.0 / sum(1.0 / s[2] for s in sides)
-        inertia = 1.0 / sum(1.0 / s[3] for s in sides)
+        mass = 1.0 / sum(1.0 / s[1] for s in sides)
+        inertia = 1.0 / sum(1.0 / s[2] for s in sides)
         zero = np.zeros((6, 6)).tolist()
         connector = system.mbs.AddObject(ObjectConnectorRigidBodySpringDamper(
-            markerNumbers=[sides[0][0], sides[1][0]], stiffness=zero, damping=zero,
-            rotationMarker0=sides[0][1].tolist(), rotationMarker1=sides[1][1].tolist(),
-            useIntrinsicFormulation=False))
+            markerNumbers=[sides[0][0], sides[1][0]], stiffness=zero, damping=zero, useIntrinsicFormulation=False))
         out.append(Spring(connector, mass, inertia, np.array(HELD[w.kind], dtype=float)))
     return out
 
@@ -72,31 +71,30 @@ def apply(system, springs: list[Spring], wn: float) -> None:
         system.mbs.SetObjectParameter(s.connector, "damping", np.diag(scale * 2.0 * ZETA * wn).tolist())
 
 
-def _side(system, w, body: str, pos, quat) -> tuple[int, np.ndarray, float, float]:
-    """(marker at the joint frame on ``body``'s carrier, the joint frame's rotation in the marker's
-    frame, the mass and inertia the joint moves there; infinite for the world)."""
+def _side(system, w, body: str, pos, quat) -> tuple[int, float, float]:
+    """(marker at the joint frame on ``body``'s carrier, the mass and inertia the joint moves there;
+    infinite for the world)."""
     frame = system.frames[body]
     x = geo.compose(frame.pose, geo.pose(pos, quat))  # the joint frame in the carrier's frame
-    rot = geo.quat_to_mat(x[1])
-    local = [float(v) for v in x[0]]
+    local = exu.HT(rotation=geo.quat_to_mat(x[1]).tolist(), translation=[float(v) for v in x[0]])
     mbs = system.mbs
     if frame.kind == "world":
-        return mbs.AddMarker(MarkerBodyRigid(bodyNumber=system.ground, localPosition=local)), rot, np.inf, np.inf
+        return mbs.AddMarker(MarkerBodyRigid(bodyNumber=system.ground, localHT=local)), np.inf, np.inf
     if frame.kind == "free":
         _node, rigid, _load = system.free[frame.index]
         mass, inertia = system.free_mass[frame.index], system.free_inertia[frame.index]
         arm = np.asarray(x[0])  # the carrier's node is at its centre of mass
-        marker = mbs.AddMarker(MarkerBodyRigid(bodyNumber=rigid, localPosition=local))
+        marker = mbs.AddMarker(MarkerBodyRigid(bodyNumber=rigid, localHT=local))
     elif frame.kind == "link":
         kt, link = system.link_ref[frame.index]
         spec = next(t["spec"] for t in system.trees if t["kt"] == kt)
         mass, inertia = spec.masses[link], np.asarray(spec.inertias[link])
         arm = np.asarray(x[0]) - spec.coms[link]
-        marker = mbs.AddMarker(MarkerKinematicTreeRigid(objectNumber=kt, linkNumber=link, localPosition=local))
+        marker = mbs.AddMarker(MarkerKinematicTreeRigid(objectNumber=kt, linkNumber=link, localHT=local))
     else:
         raise fail(system.top.core, f"make_joint({w.a!r}, {w.b!r}): {body!r} is a cable; the exudyn core pins "
                    "cables with attach, it makes no joint on them")
-    return marker, rot, *_effective(mass, inertia, arm)
+    return marker, *_effective(mass, inertia, arm)
 
 
 def _effective(mass: float, inertia: np.ndarray, arm: np.ndarray) -> tuple[float, float]:

@@ -847,5 +847,9 @@ class MujocoCore(EditedCore):
             self._activate(edits, carry=True)
             self._write_all()
 
+    def _ports_of(self, edits: Edits) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
+        view = self._scene_view(edits)
+        return view.ports_in, view.ports_out
+
     def _body_spec(self, body: str) -> BodySpec | None:
         return self._scene.specs.get(body)

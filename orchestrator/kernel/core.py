@@ -1,8 +1,15 @@
 """The physics-core interface, engine-neutral, and the scene of primitives both cores build.
 
 A physics core is a Module with a scene. The kernel speaks only these words; the MuJoCo and Exudyn
-cores translate them to their engines. Structural edits (`make`, `make_joint`, `no_collision`) and
-run-time parameter changes are part of the core's state, so history and rollback restore them.
+cores translate them to their engines. Structural edits (`make`, `make_joint`, `no_collision`,
+`add_body`, `remove_body`, `set_material`) and run-time parameter changes are part of the core's
+state, so history and rollback restore them.
+
+The ports follow the bodies: every body present has its ports, so `add_body` and `remove_body` change
+the core's `inputs` and `outputs`. The world then installs a structure with the new ports (values
+carried by name, connections to ports that are gone dropped); history keeps the old structure, and
+when a rollback installs it the core is bound to the old ports, which it takes back by their names
+(`EditedCore`). `ports_for_state` tells an importing world the ports of an exported state.
 
 Ports every core exposes (names are ``<object>.<quantity>``):
 
@@ -34,7 +41,9 @@ Ports every core exposes (names are ``<object>.<quantity>``):
 
 Run-time parameters every core has: ``friction`` (sliding coefficient, all contacts),
 ``restitution`` (coefficient of restitution of contacts, 0..1, mapped so a measured bounce follows
-it), ``gravity`` (3-vector, m/s^2), ``substeps`` (engine steps per module step).
+it), ``gravity`` (3-vector, m/s^2), ``substeps`` (engine steps per module step). A body may have its
+own ``friction`` and ``restitution`` (`BodySpec`, `set_material`; ``World.set("core.<body>.friction",
+...)``): they rule its contacts with bodies that have none of their own.
 
 Flexible bodies (`FLEX_SHAPES`): a ``cable`` is a rope of beam elements between two points, its ends
 free, pinned in space or pinned to bodies (`CableSpec`). A core that cannot simulate one refuses it
@@ -391,6 +400,13 @@ class PhysicsCore(Module):
         """``body``'s own friction and restitution (None where it takes the core's)."""
         raise DynabrainError(f"{self.ENGINE} core {self.name!r} has no per-body friction or restitution")
 
+    def ports_for_state(self, state: Any) -> tuple[tuple[Port, ...], tuple[Port, ...]] | None:
+        """The (inputs, outputs) the core has in ``state`` (one of its `get_state` values), when they
+        differ from its ports now (bodies added or removed); None when they do not, or it cannot say.
+        `World.import_state` installs them, so that a state exported after `add_body` imports into a
+        world built from the scenario alone."""
+        return None
+
     # -- parameters ---------------------------------------------------------------------------------------
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
         spec = self.param_specs().get(name)
@@ -447,6 +463,16 @@ class EditedCore(PhysicsCore):
     def _body_spec(self, body: str) -> BodySpec | None:
         """The spec of a body of a primitive scene or added at run time; None for a model file's."""
         return None
+
+    def _ports_of(self, edits: Edits) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
+        """The core's (inputs, outputs) with the bodies of ``edits`` (engines with run-time bodies say)."""
+        return tuple(self.inputs()), tuple(self.outputs())
+
+    def ports_for_state(self, state: Any) -> tuple[tuple[Port, ...], tuple[Port, ...]] | None:
+        edits = state[0] if isinstance(state, tuple) and state and isinstance(state[0], Edits) else None
+        if edits is None or edits.scene_key() == self._edits.scene_key():
+            return None
+        return self._ports_of(edits)
 
     def _scene_body(self, name: str) -> bool:
         """Whether ``name`` is an object of the scene's primitives (one `remove_body` may take out)."""

@@ -943,12 +943,13 @@ class World:
                 f"import_state: the state is of a world with step {format_duration(ps.step_ns)} (world "
                 f"{ps.world!r}); this world's step is {format_duration(self.dt_ns)}")
         mine = {rec.name: rec for rec in self._structure.records}
-        for entry in ps.modules:
+        for entry, saved in zip(ps.modules, ps.states, strict=True):
             rec = mine.get(entry.name)
             if rec is None:
                 continue
             cls = f"{type(rec.module).__module__}:{type(rec.module).__qualname__}"
-            if cls != entry.cls or self._signature_of(rec) != entry.signature:
+            if cls != entry.cls or (self._signature_of(rec) != entry.signature
+                                    and self._ports_in_state(rec.module, entry, saved) is None):
                 raise portable.StateFormatError(
                     f"import_state: module {entry.name!r} differs: the state's (world {ps.world!r}) is {entry.cls}, "
                     f"this world's is {cls}" + (" with other ports (another scene or configuration?)"
@@ -965,11 +966,25 @@ class World:
             hit = self._signatures[id(rec)] = (rec, portable.signature(rec.module, (*rec.inputs, *rec.outputs)))
         return hit[1]
 
+    def _ports_in_state(self, module: Module, entry: portable.ModuleEntry, saved: Any) -> tuple | None:
+        """(inputs, outputs) of a core whose ports in the state differ from its ports here (bodies added
+        or removed: `PhysicsCore.ports_for_state`), when they are the state's; else None."""
+        ports = module.ports_for_state(saved) if isinstance(module, PhysicsCore) else None
+        if ports is None or portable.signature(module, (*ports[0], *ports[1])) != entry.signature:
+            return None
+        return ports
+
     def _structure_for(self, ps: portable.PortableState) -> Structure:
         """This world's structure when it matches the state's, else one made for it (new modules made
         and set up; a failure closes them and leaves the world as it was)."""
         current = self._structure
-        if (len(ps.modules) == len(current.records) and ps.connections == tuple(
+        present = {r.name: r for r in current.records}
+        other_ports = {}  # a core with other bodies in the state: its ports there (`_decode_state` checked them)
+        for entry, saved in zip(ps.modules, ps.states, strict=True):
+            rec = present.get(entry.name)
+            if rec is not None and self._signature_of(rec) != entry.signature:
+                other_ports[entry.name] = self._ports_in_state(rec.module, entry, saved)
+        if not other_ports and (len(ps.modules) == len(current.records) and ps.connections == tuple(
                 (c.src, c.dst, c.delay) for c in current.connections) and all(
                 e.name == r.name and e.period_ns == r.period_ns and e.phase == r.phase
                 for e, r in zip(ps.modules, current.records, strict=True))):
@@ -983,6 +998,8 @@ class World:
                 have = by_name.get(entry.name)
                 if isinstance(have, ModuleRecord):  # present: checked by `_decode_state`
                     module, inputs, outputs = have.module, have.inputs, have.outputs
+                    if other_ports.get(entry.name) is not None:  # a core with other bodies in the state
+                        inputs, outputs = other_ports[entry.name]
                 else:
                     module = have if have is not None else self._make_for_import(entry, made)
                     inputs, outputs = tuple(module.inputs()), tuple(module.outputs())
