@@ -273,3 +273,15 @@ def test_nan_is_set_only_where_an_input_means_unset_by_it(tmp_path):
           - {at: 6ms, set: {g.u: [.nan]}}
         """)
     assert len(found) == 2 and all("finite" in p for p in found), found
+
+
+def test_a_huge_exponent_is_refused_at_once_with_its_line(tmp_path):
+    """Building the exact value of 1e100000000 would take minutes: the quantity's range is checked first."""
+    from dynabrain.orchestrator import ScenarioError, load_scenario
+
+    path = tmp_path / "huge.yaml"
+    path.write_text("name: huge\nworld: {step: 2ms, duration: 1s, core: mujoco}\n"
+                    "scene:\n  - box: {name: b, size: [0.1, 0.1, 0.1], mass: 1e100000000kg}\n")
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(path).build()
+    assert "huge.yaml:4" in str(err.value) and "out of range" in str(err.value)

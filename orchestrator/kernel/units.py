@@ -52,6 +52,13 @@ _QUANTITY = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d
 NS_PER_S = 1_000_000_000
 
 
+MAX_EXPONENT = 400
+"""Largest decimal exponent a quantity may have: beyond a float's range (1e308) with room to spare; an
+exact Fraction of 1e100000000 would take minutes to build."""
+MAX_DIGITS = 400
+"""Most digits a quantity's mantissa may have."""
+
+
 def known_units() -> list[str]:
     """Every unit symbol a scenario may use."""
     return sorted(_UNITS)
@@ -67,6 +74,11 @@ def _split(text: str) -> tuple[Fraction, str | None]:
 
         hint = closest(unit, _UNITS)
         raise UnitError(f"unknown unit {unit!r} in {text!r}" + (f" (did you mean {hint!r}?)" if hint else ""))
+    mantissa, _, exponent = number.lower().partition("e")
+    if (exponent and abs(int(exponent)) > MAX_EXPONENT) or len(mantissa) > MAX_DIGITS:
+        shown = text if len(text) <= 40 else text[:37] + "..."
+        raise UnitError(f"{shown!r} is out of range: a quantity has at most {MAX_DIGITS} digits and a decimal "
+                        f"exponent within +-{MAX_EXPONENT}")
     return Fraction(number), unit
 
 
