@@ -15,7 +15,8 @@ a value be there all the same (NaN written into an input by hand), the sum is no
 finds every checked output finite, and the tick goes on: slower, never wrong.
 
 A span of up to `SMALL` values is summed by Python over a memoryview (under 0.1 us); a longer one by a
-dot product with ones (about 0.3 us for the humanoid's 730 values). A sum is infinite or NaN when a
+dot product with ones (about 0.3 us for the humanoid's 730 values), and one longer than `LARGE` (an
+image) by numpy's reduction on one thread. A sum is infinite or NaN when a
 value is (a sum of finite values that overflows is infinite too: the search then finds nothing, and the
 tick goes on); the world tests it with comparisons, which never warn.
 """
@@ -34,6 +35,11 @@ if TYPE_CHECKING:
 
 SMALL = 24
 """Spans of at most this many values are summed over a memoryview; longer ones by a dot product."""
+
+LARGE = 8192
+"""Spans longer than this (images) are summed by numpy's own reduction: a BLAS dot product over 230k
+values started OpenBLAS's threads, which fought over the cores (about 6 ms a tick with a stereo
+camera on a 2-core machine, against tens of microseconds summed on one thread)."""
 
 Probe = tuple[Callable[[Any], float], Any]
 """One span as the world checks it, ``add(values)``: (`sum`, a memoryview of the span) or (the span's
@@ -82,7 +88,8 @@ class OutputCheck:
 
     def probes(self, buf: np.ndarray, mv: memoryview) -> tuple[Probe, ...]:
         """The spans on the bus ``buf`` (``mv`` its memoryview), as the world checks them each tick."""
-        return tuple((sum, mv[a:b]) if b - a <= SMALL else (buf[a:b].dot, np.ones(b - a)) for a, b in self.spans)
+        return tuple((sum, mv[a:b]) if b - a <= SMALL else (buf[a:b].dot, np.ones(b - a)) if b - a <= LARGE
+                     else (np.add.reduce, buf[a:b]) for a, b in self.spans)
 
     def search(self, buf: np.ndarray, tick: int) -> None:
         """Raise `NonFiniteOutputError` for the first checked output on ``buf`` that is not finite (after
