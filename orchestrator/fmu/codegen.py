@@ -16,12 +16,19 @@ from xml.sax.saxutils import quoteattr
 from .spec import FmuSpec, Var
 
 GENERATOR = "dynabrain fmu build"
-_CTYPE = {"real": "double", "integer": "int32_t", "boolean": "int32_t"}
-_TCODE = {"real": "T_REAL", "integer": "T_INT", "boolean": "T_BOOL"}
+_CTYPE = {"real": "double", "float32": "float", "int8": "int8_t", "uint8": "uint8_t", "int16": "int16_t",
+          "uint16": "uint16_t", "integer": "int32_t", "uint32": "uint32_t", "int64": "int64_t", "uint64": "uint64_t",
+          "boolean": "int32_t", "enumeration": "int32_t"}
+_TCODE = {"real": "T_REAL", "float32": "T_F32", "int8": "T_I8", "uint8": "T_U8", "int16": "T_I16", "uint16": "T_U16",
+          "integer": "T_INT", "uint32": "T_U32", "int64": "T_I64", "uint64": "T_U64", "boolean": "T_BOOL",
+          "enumeration": "T_ENUM", "string": "T_STR", "binary": "T_BIN"}
 _CAUSALITY = {"parameter": "C_PARAMETER", "input": "C_INPUT", "output": "C_OUTPUT", "local": "C_LOCAL"}
 _VARIABILITY = {"fixed": "V_FIXED", "tunable": "V_TUNABLE", "discrete": "V_DISCRETE", "continuous": "V_CONTINUOUS"}
-_XML2_TYPE = {"real": "Real", "integer": "Integer", "boolean": "Boolean"}
-_XML3_TYPE = {"real": "Float64", "integer": "Int32", "boolean": "Boolean"}
+_XML2_TYPE = {"real": "Real", "integer": "Integer", "boolean": "Boolean", "enumeration": "Enumeration",
+              "string": "String"}
+_XML3_TYPE = {"real": "Float64", "float32": "Float32", "int8": "Int8", "uint8": "UInt8", "int16": "Int16",
+              "uint16": "UInt16", "integer": "Int32", "uint32": "UInt32", "int64": "Int64", "uint64": "UInt64",
+              "boolean": "Boolean", "enumeration": "Enumeration", "string": "String", "binary": "Binary"}
 
 
 @dataclass(frozen=True)
@@ -70,7 +77,14 @@ def model_data_h(spec: FmuSpec) -> str:
         note = note.replace("*/", "* /")
         if var.type == "boolean":
             note += " (boolean: 0 or 1)"
-        lines.append(f"    {_CTYPE[var.type]} {var.name}{dims}; /* {note} */")
+        if var.type == "enumeration":
+            note += " (" + ", ".join(f"{i + 1} {item}" for i, item in enumerate(var.items)) + ")"
+        if var.type == "string":
+            lines.append(f"    char {var.name}[{var.capacity}]; /* {note} */")
+        elif var.type == "binary":
+            lines.append(f"    FMU_BINARY({var.capacity}) {var.name}; /* {note} */")
+        else:
+            lines.append(f"    {_CTYPE[var.type]} {var.name}{dims}; /* {note} */")
     for name, ctype, size in spec.c_state:
         lines.append(f"    {ctype} {name}{f'[{size}]' if size else ''};")
     lines += ["} ModelData;", "", "#endif", ""]
@@ -80,15 +94,38 @@ def model_data_h(spec: FmuSpec) -> str:
 def _c_literal(var: Var, value: float | int | bool) -> str:
     if var.type == "boolean":
         return "1" if value else "0"
-    if var.type == "integer":
+    if var.type == "int64":
+        return f"INT64_C({int(value)})" if value != -2**63 else "INT64_MIN"
+    if var.type in ("uint32", "uint64"):
+        return f"UINT64_C({int(value)})"
+    if var.type not in ("real", "float32"):
         return str(int(value))
     text = repr(float(value))
-    return text if any(c in text for c in ".eE") else text + ".0"
+    text = text if any(c in text for c in ".eE") else text + ".0"
+    return text + "f" if var.type == "float32" else text
+
+
+def _c_bytes(data: bytes) -> str:
+    """A C string literal of ``data`` (octal escapes but for letters, digits and spaces)."""
+    return '"' + "".join(chr(b) if (chr(b).isalnum() and b < 128) or b == 32 else f"\\{b:03o}" for b in data) + '"'
+
+
+def _c_start(v: Var) -> list[str]:
+    if v.type == "string":
+        data = str(v.start[0]).encode()
+        return [f"    memcpy(m->{v.name}, {_c_bytes(data)}, {len(data) + 1});"]
+    if v.type == "binary":
+        data = bytes(v.start[0])  # type: ignore[arg-type]
+        return [f"    m->{v.name}.size = {len(data)};"] + (
+            [f"    memcpy(m->{v.name}.data, {_c_bytes(data)}, {len(data)});"] if data else [])
+    if v.size is None:
+        return [f"    m->{v.name} = {_c_literal(v, v.start[0])};"]
+    return [f"    m->{v.name}[{i}] = {_c_literal(v, s)};" for i, s in enumerate(v.start)]
 
 
 def tables_inc(spec: FmuSpec, version: int, guid: str) -> str:
     """The variable table, the token and the start values, included by fmu_core.c."""
-    rows = ['    {T_REAL, C_INDEPENDENT, V_CONTINUOUS, 0, offsetof(ModelData, time), 1, "time"},']
+    rows = ['    {T_REAL, C_INDEPENDENT, V_CONTINUOUS, 0, offsetof(ModelData, time), 1, 0, "time"},']
     for e in entries(spec, version):
         v = e.var
         offset = f"offsetof(ModelData, {v.name})"
@@ -96,13 +133,8 @@ def tables_inc(spec: FmuSpec, version: int, guid: str) -> str:
             offset += f" + {e.element} * sizeof({_CTYPE[v.type]})"
         exact = 1 if v.causality in ("input", "parameter") or (v.causality == "local" and v.start_given) else 0
         rows.append(f"    {{{_TCODE[v.type]}, {_CAUSALITY[v.causality]}, {_VARIABILITY[v.variability]}, {exact}, "
-                    f"{offset}, {e.count}, \"{e.fmi_name}\"}},")
-    starts = []
-    for v in spec.variables:
-        if v.size is None:
-            starts.append(f"    m->{v.name} = {_c_literal(v, v.start[0])};")
-        else:
-            starts += [f"    m->{v.name}[{i}] = {_c_literal(v, s)};" for i, s in enumerate(v.start)]
+                    f"{offset}, {e.count}, {v.capacity}, \"{e.fmi_name}\"}},")
+    starts = [line for v in spec.variables for line in _c_start(v)]
     return "\n".join([
         "/* Generated by dynabrain from fmu.yaml: do not edit. */",
         f"#define MODEL_TOKEN \"{guid}\"",
@@ -114,7 +146,7 @@ def tables_inc(spec: FmuSpec, version: int, guid: str) -> str:
 def _fmt(var: Var, value: float | int | bool) -> str:
     if var.type == "boolean":
         return "true" if value else "false"
-    if var.type == "integer":
+    if var.type not in ("real", "float32"):
         return str(int(value))
     return repr(float(value))
 
@@ -141,11 +173,35 @@ def _header(spec: FmuSpec, version: int, guid: str) -> list[str]:
     head.append(f'  <CoSimulation modelIdentifier="{spec.name}" canHandleVariableCommunicationStepSize="true"'
                 f'{caps}{extra}/>')
     head += _units(spec)
+    head += _type_definitions(spec, version)
     head += ["  <LogCategories>", '    <Category name="logEvents"/>', '    <Category name="logStatusWarning"/>',
              '    <Category name="logStatusError"/>', "  </LogCategories>"]
-    if spec.step is not None:
-        head.append(f'  <DefaultExperiment stepSize="{spec.step!r}"/>')
+    experiment = (f' startTime="{spec.start_time!r}"' if spec.start_time is not None else "") + (
+        f' stepSize="{spec.step!r}"' if spec.step is not None else "")
+    if experiment:
+        head.append(f"  <DefaultExperiment{experiment}/>")
     return head
+
+
+def type_name(var: Var) -> str:
+    """The name of an enumeration variable's type."""
+    return f"{var.name}Items"
+
+
+def _type_definitions(spec: FmuSpec, version: int) -> list[str]:
+    enums = [v for v in spec.variables if v.type == "enumeration"]
+    if not enums:
+        return []
+    lines = ["  <TypeDefinitions>"]
+    for v in enums:
+        items = [f'<Item name={quoteattr(item)} value="{i + 1}"/>' for i, item in enumerate(v.items)]
+        if version == 2:
+            lines += [f'    <SimpleType name="{type_name(v)}">', "      <Enumeration>",
+                      *[f"        {item}" for item in items], "      </Enumeration>", "    </SimpleType>"]
+        else:
+            lines += [f'    <EnumerationType name="{type_name(v)}">', *[f"      {item}" for item in items],
+                      "    </EnumerationType>"]
+    return [*lines, "  </TypeDefinitions>"]
 
 
 def _attrs(e: Entry, version: int) -> str:
@@ -158,12 +214,38 @@ def _attrs(e: Entry, version: int) -> str:
     return text
 
 
-def _start(e: Entry) -> str:
+def _has_start(v: Var) -> bool:
+    return not (v.causality == "output" or (v.causality == "local" and not v.start_given))
+
+
+def _start(e: Entry, version: int) -> str:
+    """The start attribute (an enumeration's with its type); FMI 3.0 strings and binaries have a
+    `_start_element` instead."""
     v = e.var
-    if v.causality == "output" or (v.causality == "local" and not v.start_given):
+    if not _has_start(v) or v.type == "binary":
         return ""
-    values = [v.start[e.element]] if e.element is not None else list(v.start)
-    return f' start="{" ".join(_fmt(v, x) for x in values)}"'
+    if v.type == "string":
+        return f" start={quoteattr(str(v.start[0]))}" if version == 2 else ""
+    declared = f' declaredType="{type_name(v)}"' if v.type == "enumeration" else ""
+    return f'{declared} start="{" ".join(_fmt(v, x) for x in _values(e))}"'
+
+
+def _values(e: Entry) -> list:
+    return [e.var.start[e.element]] if e.element is not None else list(e.var.start)
+
+
+def _declared(e: Entry) -> str:
+    """An enumeration's type, for one without a start (an output)."""
+    return f' declaredType="{type_name(e.var)}"' if e.var.type == "enumeration" and not _has_start(e.var) else ""
+
+
+def _start_element(e: Entry) -> str:
+    """FMI 3.0 gives a string's or binary's start as an element."""
+    v = e.var
+    if v.type not in ("string", "binary") or not _has_start(v):
+        return ""
+    value = str(v.start[0]) if v.type == "string" else bytes(v.start[0]).hex()  # type: ignore[arg-type]
+    return f"<Start value={quoteattr(value)}/>"
 
 
 def _unit(e: Entry) -> str:
@@ -178,15 +260,16 @@ def model_description(spec: FmuSpec, version: int, guid: str) -> str:
     if version == 2:
         for e in es:
             tag = _XML2_TYPE[e.var.type]
-            lines.append(f"    <ScalarVariable {_attrs(e, 2)}><{tag}{_start(e)}{_unit(e)}/></ScalarVariable>")
+            lines.append(f"    <ScalarVariable {_attrs(e, 2)}><{tag}{_declared(e)}{_start(e, 2)}{_unit(e)}/>"
+                         "</ScalarVariable>")
     else:
         lines.append('    <Float64 name="time" valueReference="0" causality="independent" variability="continuous" '
                      'description="simulated time"/>')
         for e in es:
             tag = _XML3_TYPE[e.var.type]
-            body = f"<Dimension start=\"{e.var.size}\"/>" if e.var.size is not None else ""
+            body = _start_element(e) + (f"<Dimension start=\"{e.var.size}\"/>" if e.var.size is not None else "")
             close = f">{body}</{tag}>" if body else "/>"
-            lines.append(f"    <{tag} {_attrs(e, 3)}{_start(e)}{_unit(e)}{close}")
+            lines.append(f"    <{tag} {_attrs(e, 3)}{_declared(e)}{_start(e, 3)}{_unit(e)}{close}")
     lines.append("  </ModelVariables>")
     lines += _structure(es, version)
     lines += ["</fmiModelDescription>", ""]

@@ -10,6 +10,8 @@ variables:
   - {name: tau, causality: output, size: N, unit: N*m, depends: [q_ref]}
   - {name: kp, causality: parameter, variability: tunable, start: 50.0}
   - {name: torque, causality: local, size: N}          # state the model keeps
+  - {name: mode, type: enumeration, causality: input, items: [off, hold, track], start: hold}
+  - {name: label, type: string, causality: parameter, start: "servo A", capacity: 64}
 c_state:                     # extra C fields of ModelData (for example a generator's state)
   - {name: rng, ctype: uint64_t}
 ```
@@ -32,6 +34,16 @@ from ..kernel.yamlsrc import YamlSource, read_yaml
 from .errors import FMUBuildError
 
 IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+VarType = Literal["real", "float32", "int8", "uint8", "int16", "uint16", "integer", "uint32", "int64", "uint64",
+                  "boolean", "enumeration", "string", "binary"]
+FMI3_ONLY = ("float32", "int8", "uint8", "int16", "uint16", "uint32", "int64", "uint64", "binary")
+"""Types FMI 2.0 does not have."""
+INT_RANGES = {"int8": (-2**7, 2**7 - 1), "uint8": (0, 2**8 - 1), "int16": (-2**15, 2**15 - 1),
+              "uint16": (0, 2**16 - 1), "integer": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1),
+              "int64": (-2**63, 2**63 - 1), "uint64": (0, 2**64 - 1)}
+FLOATS = ("real", "float32")
+TEXT = ("string", "binary")
+DEFAULT_CAPACITY = 256
 CTYPES = ("double", "float", "int32_t", "uint32_t", "int64_t", "uint64_t", "uint8_t", "int")
 SPEC_FILE = "fmu.yaml"
 RESERVED = {"time", "m", "h"}
@@ -43,17 +55,23 @@ class _Strict(BaseModel):
 
 class VarCfg(_Strict):
     name: str
-    type: Literal["real", "integer", "boolean"] = "real"
+    type: VarType = "real"
     causality: Literal["input", "output", "parameter", "local"]
     variability: Literal["fixed", "tunable", "discrete", "continuous"] | None = None
     """Default: ``fixed`` for a parameter, ``continuous`` for a real, ``discrete`` otherwise."""
     size: int | str | None = None
     """A vector of this many values (a number or a name from ``defines``)."""
-    start: float | int | bool | list[float | int | bool] | None = None
+    start: float | int | bool | str | list[float | int | bool] | None = None
+    """A number, a list of them (a vector), true or false; an enumeration's item (or its number, from 1);
+    a string's text; a binary's bytes in hex (``"666f6f"``)."""
     unit: str | None = None
     description: str = ""
     depends: list[str] | None = None
     """For an output: the inputs it depends on directly (default: all of them)."""
+    items: list[str] | None = None
+    """An enumeration's items, numbered from 1."""
+    capacity: int | None = None
+    """A string's or binary's room in bytes (default 256; a string keeps one for its end)."""
 
 
 class CStateCfg(_Strict):
@@ -78,6 +96,8 @@ class SpecCfg(_Strict):
     cflags: list[str] = []
     step: float | None = None
     """The default communication step in seconds (DefaultExperiment)."""
+    start_time: float | None = None
+    """The FMU's time at the start of a simulation, in seconds (DefaultExperiment startTime)."""
     capabilities: CapsCfg = CapsCfg()
     variables: list[VarCfg]
     c_state: list[CStateCfg] = []
@@ -85,7 +105,8 @@ class SpecCfg(_Strict):
 
 @dataclass(frozen=True)
 class Var:
-    """One variable, checked: ``size`` is None for a scalar, ``start`` has one value per element."""
+    """One variable, checked: ``size`` is None for a scalar, ``start`` has one value per element (an
+    enumeration's item number, a string's text, a binary's bytes)."""
 
     name: str
     type: str
@@ -98,6 +119,8 @@ class Var:
     unit: str | None
     description: str
     depends: tuple[str, ...] | None
+    items: tuple[str, ...] = ()
+    capacity: int = 0
 
     @property
     def count(self) -> int:
@@ -121,6 +144,7 @@ class FmuSpec:
     can_serialize: bool
     variables: tuple[Var, ...]
     c_state: tuple[tuple[str, str, str | None], ...]
+    start_time: float | None = None
 
 
 def load_spec(folder: str | Path) -> FmuSpec:
@@ -167,13 +191,15 @@ class _Checker:
         sources = self._sources()
         if cfg.step is not None and not (cfg.step > 0 and math.isfinite(cfg.step)):
             self.report(("step",), "step must be a positive number of seconds")
+        if cfg.start_time is not None and not math.isfinite(cfg.start_time):
+            self.report(("start_time",), "start_time must be a finite number of seconds")
         if cfg.capabilities.serialize and not cfg.capabilities.get_set_state:
             self.report(("capabilities",), "serialize needs get_set_state")
         if self.problems:
             raise _fail(self.problems)
         return FmuSpec(self.folder, cfg.name, cfg.description, cfg.version, tuple(cfg.fmi), dict(cfg.defines),
                        sources, tuple(cfg.cflags), cfg.step, cfg.capabilities.get_set_state,
-                       cfg.capabilities.serialize, variables, c_state)
+                       cfg.capabilities.serialize, variables, c_state, cfg.start_time)
 
     def _size(self, value: int | str | None, path: tuple) -> tuple[int | None, str | None]:
         if value is None:
@@ -201,9 +227,12 @@ class _Checker:
             size, expr = self._size(v.size, (*path, "size"))
             variability = v.variability or self._default_variability(v)
             self._check_variability(v, variability, path)
+            self._check_type(v, size, path)
             start = self._start(v, size, path)
+            capacity = (v.capacity or DEFAULT_CAPACITY) if v.type in TEXT else 0
             out.append(Var(v.name, v.type, v.causality, variability, size, expr, start, v.start is not None,
-                           v.unit, v.description, tuple(v.depends) if v.depends is not None else None))
+                           v.unit, v.description, tuple(v.depends) if v.depends is not None else None,
+                           tuple(v.items or ()), capacity))
         inputs = {v.name for v in out if v.causality == "input"}
         for i, v in enumerate(out):
             if v.depends is not None:
@@ -220,7 +249,26 @@ class _Checker:
     def _default_variability(v: VarCfg) -> str:
         if v.causality == "parameter":
             return "fixed"
-        return "continuous" if v.type == "real" else "discrete"
+        return "continuous" if v.type in FLOATS else "discrete"
+
+    def _check_type(self, v: VarCfg, size: int | None, path: tuple) -> None:
+        """What only some types have: FMI versions, items, capacity, vectors."""
+        if v.type in FMI3_ONLY and 2 in self.cfg.fmi:
+            self.report((*path, "type"), f"FMI 2.0 has no {v.type} variables: build this FMU for FMI 3.0 only "
+                        "(fmi: [3])")
+        if v.type == "enumeration":
+            items = v.items or []
+            if not items or len(set(items)) != len(items):
+                self.report((*path, "items"), "an enumeration lists its items, each once")
+        elif v.items is not None:
+            self.report((*path, "items"), "only an enumeration has items")
+        if v.type in TEXT:
+            if size is not None:
+                self.report((*path, "size"), f"a {v.type} variable is a single value (no size)")
+            if v.capacity is not None and not 1 <= v.capacity <= 65536:
+                self.report((*path, "capacity"), "capacity is 1 to 65536 bytes")
+        elif v.capacity is not None:
+            self.report((*path, "capacity"), "only string and binary variables have a capacity")
 
     def _check_variability(self, v: VarCfg, variability: str, path: tuple) -> None:
         allowed = {"parameter": ("fixed", "tunable"), "input": ("continuous", "discrete"),
@@ -228,31 +276,62 @@ class _Checker:
         if variability not in allowed[v.causality]:
             self.report((*path, "variability"), f"a {v.causality} is {' or '.join(allowed[v.causality])}, "
                         f"not {variability}")
-        if variability == "continuous" and v.type != "real":
+        if variability == "continuous" and v.type not in FLOATS:
             self.report((*path, "variability"), f"a {v.type} variable cannot be continuous (use discrete)")
-        if v.unit is not None and v.type != "real":
-            self.report((*path, "unit"), "only real variables carry a unit")
+        if v.unit is not None and v.type not in FLOATS:
+            self.report((*path, "unit"), "only real and float32 variables carry a unit")
 
-    def _start(self, v: VarCfg, size: int | None, path: tuple) -> tuple[float | int | bool, ...]:
+    def _start(self, v: VarCfg, size: int | None, path: tuple) -> tuple[float | int | bool | str | bytes, ...]:
         count = 1 if size is None else size
-        raw = v.start if v.start is not None else (False if v.type == "boolean" else 0)
+        if v.type in TEXT:
+            return (self._text_start(v, path),)
+        default = {"boolean": False, "enumeration": 1}.get(v.type, 0)
+        raw = v.start if v.start is not None else default
         values = list(raw) if isinstance(raw, list) else [raw] * count
         if len(values) != count:
             self.report((*path, "start"), f"start has {len(values)} values for a size of {count}")
-            return tuple([0] * count)
-        out: list[float | int | bool] = []
+            return tuple([default] * count)
+        out: list[float | int | bool | str | bytes] = []
         for value in values:
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if v.type == "enumeration" and isinstance(value, str) and value in (v.items or []):
+                value = (v.items or []).index(value) + 1
             if v.type == "boolean":
                 ok = isinstance(value, bool)
-            elif v.type == "integer":
-                ok = isinstance(value, int) and not isinstance(value, bool) and -2**31 <= value < 2**31
+            elif v.type == "enumeration":
+                ok = isinstance(value, int) and not isinstance(value, bool) and 1 <= value <= len(v.items or [])
+            elif v.type in INT_RANGES:
+                low, high = INT_RANGES[v.type]
+                ok = isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
             else:
-                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                ok = number and math.isfinite(value) and (v.type == "real" or abs(value) <= 3.4028234663852886e38)
             if not ok:
-                self.report((*path, "start"), f"start value {value!r} is not a finite {v.type}")
-                return tuple([0] * count)
-            out.append(float(value) if v.type == "real" else value)
+                what = "item of the enumeration" if v.type == "enumeration" else v.type
+                self.report((*path, "start"), f"start value {value!r} is not a finite {what}")
+                return tuple([default] * count)
+            out.append(float(value) if v.type in FLOATS else value)
         return tuple(out)
+
+    def _text_start(self, v: VarCfg, path: tuple) -> str | bytes:
+        raw = "" if v.start is None else v.start
+        capacity = v.capacity or DEFAULT_CAPACITY
+        if not isinstance(raw, str):
+            self.report((*path, "start"), f"the start of a {v.type} variable is " +
+                        ("text" if v.type == "string" else "its bytes in hex (\"666f6f\")"))
+            return "" if v.type == "string" else b""
+        if v.type == "string":
+            if len(raw.encode()) >= capacity or "\0" in raw:
+                self.report((*path, "start"), f"the start text needs more than the capacity of {capacity} bytes "
+                            "(one is for the end)" if "\0" not in raw else "the start text holds a NUL character")
+            return raw
+        try:
+            data = bytes.fromhex(raw)
+        except ValueError:
+            self.report((*path, "start"), f"{raw!r} is not bytes in hex (\"666f6f\")")
+            return b""
+        if len(data) > capacity:
+            self.report((*path, "start"), f"{len(data)} bytes do not fit the capacity of {capacity}")
+        return data
 
     def _c_state(self, names: set[str]) -> tuple[tuple[str, str, str | None], ...]:
         out = []

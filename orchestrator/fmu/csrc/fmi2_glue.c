@@ -76,39 +76,35 @@ fmi2Status fmi2Reset(fmi2Component c) {
 }
 
 fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Real value[]) {
-    return (fmi2Status)core_get(INST, T_REAL, vr, nvr, value, nvr, false, "fmi2GetReal");
+    return (fmi2Status)core_get(INST, W_F64, vr, nvr, value, NULL, nvr, "fmi2GetReal");
 }
 
 fmi2Status fmi2GetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Integer value[]) {
-    return (fmi2Status)core_get(INST, T_INT, vr, nvr, value, nvr, false, "fmi2GetInteger");
+    return (fmi2Status)core_get(INST, W_I32, vr, nvr, value, NULL, nvr, "fmi2GetInteger");
 }
 
 fmi2Status fmi2GetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2Boolean value[]) {
-    return (fmi2Status)core_get(INST, T_BOOL, vr, nvr, value, nvr, false, "fmi2GetBoolean");
+    return (fmi2Status)core_get(INST, W_BOOL_INT, vr, nvr, value, NULL, nvr, "fmi2GetBoolean");
 }
 
 fmi2Status fmi2GetString(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, fmi2String value[]) {
-    (void)vr;
-    (void)value;
-    return nvr ? (fmi2Status)core_unsupported(INST, "fmi2GetString (this FMU has no string variables)") : fmi2OK;
+    return (fmi2Status)core_get(INST, W_STR, vr, nvr, (void *)value, NULL, nvr, "fmi2GetString");
 }
 
 fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Real value[]) {
-    return (fmi2Status)core_set(INST, T_REAL, vr, nvr, value, nvr, false, "fmi2SetReal");
+    return (fmi2Status)core_set(INST, W_F64, vr, nvr, value, NULL, nvr, "fmi2SetReal");
 }
 
 fmi2Status fmi2SetInteger(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Integer value[]) {
-    return (fmi2Status)core_set(INST, T_INT, vr, nvr, value, nvr, false, "fmi2SetInteger");
+    return (fmi2Status)core_set(INST, W_I32, vr, nvr, value, NULL, nvr, "fmi2SetInteger");
 }
 
 fmi2Status fmi2SetBoolean(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2Boolean value[]) {
-    return (fmi2Status)core_set(INST, T_BOOL, vr, nvr, value, nvr, false, "fmi2SetBoolean");
+    return (fmi2Status)core_set(INST, W_BOOL_INT, vr, nvr, value, NULL, nvr, "fmi2SetBoolean");
 }
 
 fmi2Status fmi2SetString(fmi2Component c, const fmi2ValueReference vr[], size_t nvr, const fmi2String value[]) {
-    (void)vr;
-    (void)value;
-    return nvr ? (fmi2Status)core_unsupported(INST, "fmi2SetString (this FMU has no string variables)") : fmi2OK;
+    return (fmi2Status)core_set(INST, W_STR, vr, nvr, value, NULL, nvr, "fmi2SetString");
 }
 
 fmi2Status fmi2GetFMUstate(fmi2Component c, fmi2FMUstate *FMUstate) {
@@ -162,7 +158,10 @@ fmi2Status fmi2GetRealOutputDerivatives(fmi2Component c, const fmi2ValueReferenc
 fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPoint, fmi2Real communicationStepSize,
                       fmi2Boolean noSetFMUStatePriorToCurrentPoint) {
     (void)noSetFMUStatePriorToCurrentPoint;
-    return (fmi2Status)core_do_step(INST, currentCommunicationPoint, communicationStepSize);
+    int s = core_do_step(INST, currentCommunicationPoint, communicationStepSize);
+    /* FMI 2.0 asks to end the simulation with fmi2Discard; fmi2GetBooleanStatus(fmi2Terminated) says why */
+    if (s <= fmi2Warning && INST->stop) return fmi2Discard;
+    return (fmi2Status)s;
 }
 
 fmi2Status fmi2CancelStep(fmi2Component c) { return (fmi2Status)core_unsupported(INST, "fmi2CancelStep"); }
@@ -185,7 +184,7 @@ fmi2Status fmi2GetIntegerStatus(fmi2Component c, const fmi2StatusKind s, fmi2Int
 
 fmi2Status fmi2GetBooleanStatus(fmi2Component c, const fmi2StatusKind s, fmi2Boolean *value) {
     if (!c || !value || s != fmi2Terminated) return (fmi2Status)core_unsupported(INST, "fmi2GetBooleanStatus");
-    *value = fmi2False;
+    *value = INST->stop ? fmi2True : fmi2False;
     return fmi2OK;
 }
 

@@ -1,6 +1,6 @@
 /* FMI 3.0 co-simulation API of a dynabrain C FMU, on the version-neutral core (fmu_glue.h).
- * Model exchange, scheduled execution, clocks and the types a model cannot declare are refused with
- * fmi3Error and a log message, so every function of the standard is present in the binary. */
+ * Model exchange, scheduled execution and clocks are refused with fmi3Error and a log message, so
+ * every function of the standard is present in the binary. */
 #include <string.h>
 
 #include "fmi3Functions.h"
@@ -78,82 +78,42 @@ fmi3Status fmi3Reset(fmi3Instance instance) {
     return fmi3OK;
 }
 
-fmi3Status fmi3GetFloat64(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
-                          fmi3Float64 values[], size_t nValues) {
-    return (fmi3Status)core_get(INST, T_REAL, valueReferences, nValueReferences, values, nValues, true,
-                                "fmi3GetFloat64");
-}
-
-fmi3Status fmi3GetInt32(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
-                        fmi3Int32 values[], size_t nValues) {
-    return (fmi3Status)core_get(INST, T_INT, valueReferences, nValueReferences, values, nValues, true,
-                                "fmi3GetInt32");
-}
-
-fmi3Status fmi3GetBoolean(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
-                          fmi3Boolean values[], size_t nValues) {
-    return (fmi3Status)core_get(INST, T_BOOL, valueReferences, nValueReferences, values, nValues, true,
-                                "fmi3GetBoolean");
-}
-
-fmi3Status fmi3SetFloat64(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
-                          const fmi3Float64 values[], size_t nValues) {
-    return (fmi3Status)core_set(INST, T_REAL, valueReferences, nValueReferences, values, nValues, true,
-                                "fmi3SetFloat64");
-}
-
-fmi3Status fmi3SetInt32(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
-                        const fmi3Int32 values[], size_t nValues) {
-    return (fmi3Status)core_set(INST, T_INT, valueReferences, nValueReferences, values, nValues, true,
-                                "fmi3SetInt32");
-}
-
-fmi3Status fmi3SetBoolean(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
-                          const fmi3Boolean values[], size_t nValues) {
-    return (fmi3Status)core_set(INST, T_BOOL, valueReferences, nValueReferences, values, nValues, true,
-                                "fmi3SetBoolean");
-}
-
-/* Types no dynabrain model declares: an empty call is fine, any variable is unknown. */
-#define NO_TYPE(name, ctype, qual)                                                                        \
-    fmi3Status name(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences, \
-                    qual ctype values[], size_t nValues) {                                                 \
-        (void)valueReferences, (void)values, (void)nValues;                                               \
-        if (!nValueReferences) return fmi3OK;                                                              \
-        UNSUPPORTED(#name " (this FMU has no variable of that type)");                                     \
+/* Get and set of every type but clocks: the core checks the value references against the types. */
+#define ACCESS(type, ctype, wire)                                                                               \
+    fmi3Status fmi3Get##type(fmi3Instance instance, const fmi3ValueReference valueReferences[],                 \
+                             size_t nValueReferences, ctype values[], size_t nValues) {                        \
+        return (fmi3Status)core_get(INST, wire, valueReferences, nValueReferences, (void *)values, NULL, nValues, \
+                                    "fmi3Get" #type);                                                          \
+    }                                                                                                          \
+    fmi3Status fmi3Set##type(fmi3Instance instance, const fmi3ValueReference valueReferences[],                 \
+                             size_t nValueReferences, const ctype values[], size_t nValues) {                  \
+        return (fmi3Status)core_set(INST, wire, valueReferences, nValueReferences, values, NULL, nValues,       \
+                                    "fmi3Set" #type);                                                          \
     }
 
-NO_TYPE(fmi3GetFloat32, fmi3Float32, )
-NO_TYPE(fmi3GetInt8, fmi3Int8, )
-NO_TYPE(fmi3GetUInt8, fmi3UInt8, )
-NO_TYPE(fmi3GetInt16, fmi3Int16, )
-NO_TYPE(fmi3GetUInt16, fmi3UInt16, )
-NO_TYPE(fmi3GetUInt32, fmi3UInt32, )
-NO_TYPE(fmi3GetInt64, fmi3Int64, )
-NO_TYPE(fmi3GetUInt64, fmi3UInt64, )
-NO_TYPE(fmi3GetString, fmi3String, )
-NO_TYPE(fmi3SetFloat32, fmi3Float32, const)
-NO_TYPE(fmi3SetInt8, fmi3Int8, const)
-NO_TYPE(fmi3SetUInt8, fmi3UInt8, const)
-NO_TYPE(fmi3SetInt16, fmi3Int16, const)
-NO_TYPE(fmi3SetUInt16, fmi3UInt16, const)
-NO_TYPE(fmi3SetUInt32, fmi3UInt32, const)
-NO_TYPE(fmi3SetInt64, fmi3Int64, const)
-NO_TYPE(fmi3SetUInt64, fmi3UInt64, const)
-NO_TYPE(fmi3SetString, fmi3String, const)
+ACCESS(Float64, fmi3Float64, W_F64)
+ACCESS(Float32, fmi3Float32, W_F32)
+ACCESS(Int8, fmi3Int8, W_I8)
+ACCESS(UInt8, fmi3UInt8, W_U8)
+ACCESS(Int16, fmi3Int16, W_I16)
+ACCESS(UInt16, fmi3UInt16, W_U16)
+ACCESS(Int32, fmi3Int32, W_I32)
+ACCESS(UInt32, fmi3UInt32, W_U32)
+ACCESS(Int64, fmi3Int64, W_I64)
+ACCESS(UInt64, fmi3UInt64, W_U64)
+ACCESS(Boolean, fmi3Boolean, W_BOOL8)
+ACCESS(String, fmi3String, W_STR)
 
 fmi3Status fmi3GetBinary(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                          size_t valueSizes[], fmi3Binary values[], size_t nValues) {
-    (void)valueReferences, (void)valueSizes, (void)values, (void)nValues;
-    if (!nValueReferences) return fmi3OK;
-    UNSUPPORTED("fmi3GetBinary");
+    return (fmi3Status)core_get(INST, W_BIN, valueReferences, nValueReferences, (void *)values, valueSizes, nValues,
+                                "fmi3GetBinary");
 }
 
 fmi3Status fmi3SetBinary(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                          const size_t valueSizes[], const fmi3Binary values[], size_t nValues) {
-    (void)valueReferences, (void)valueSizes, (void)values, (void)nValues;
-    if (!nValueReferences) return fmi3OK;
-    UNSUPPORTED("fmi3SetBinary");
+    return (fmi3Status)core_set(INST, W_BIN, valueReferences, nValueReferences, values, valueSizes, nValues,
+                                "fmi3SetBinary");
 }
 
 fmi3Status fmi3GetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
@@ -362,7 +322,7 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     (void)noSetFMUStatePriorToCurrentPoint;
     int s = core_do_step(INST, currentCommunicationPoint, communicationStepSize);
     if (eventHandlingNeeded) *eventHandlingNeeded = false;
-    if (terminateSimulation) *terminateSimulation = false;
+    if (terminateSimulation) *terminateSimulation = instance && INST->stop;
     if (earlyReturn) *earlyReturn = false;
     if (lastSuccessfulTime && instance) *lastSuccessfulTime = INST->d.time;
     return (fmi3Status)s;

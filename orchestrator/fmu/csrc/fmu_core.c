@@ -39,6 +39,17 @@ void fmu_log(const ModelData *m, int status, const char *format, ...) {
     if (inst->emit) inst->emit(inst, status, status >= MODEL_WARNING ? "logStatusWarning" : "logEvents", message);
 }
 
+void fmu_stop(const ModelData *m, const char *format, ...) {
+    Instance *inst = (Instance *)m;
+    char message[1024];
+    va_list args;
+    va_start(args, format);
+    vsnprintf(message, sizeof message, format, args);
+    va_end(args);
+    inst->stop = true;
+    if (inst->emit) inst->emit(inst, MODEL_OK, "logEvents", message);
+}
+
 void core_log(Instance *inst, int status, const char *category, const char *format, ...) {
     char message[1024];
     va_list args;
@@ -89,6 +100,7 @@ void core_reset(Instance *inst) {
     memset(&inst->d, 0, sizeof inst->d);
     model_starts(&inst->d);
     inst->mode = MODE_INSTANTIATED;
+    inst->stop = false;
 }
 
 int core_usable(Instance *inst, const char *call) {
@@ -146,6 +158,7 @@ int core_do_step(Instance *inst, double t, double h) {
         return MODEL_ERROR;
     }
     inst->d.time = t;
+    inst->stop = false;
     s = model_step(&inst->d, h);
     if (s <= MODEL_WARNING) inst->d.time = t + h;
     else if (s > MODEL_DISCARD) return fail(inst, s);
@@ -169,34 +182,88 @@ static int settable(const Instance *inst, const VarInfo *v) {
     }
 }
 
-static const char *type_name(VarType t) {
-    return t == T_REAL ? "a float" : t == T_INT ? "an integer" : "a boolean";
+static const char *wire_name(Wire w) {
+    static const char *names[] = {"Float64", "Float32", "Int8", "UInt8", "Int16", "UInt16", "Int32", "UInt32",
+                                  "Int64", "UInt64", "Boolean", "Boolean", "String", "Binary"};
+    return names[w];
 }
 
-static const VarInfo *lookup(Instance *inst, VarType type, unsigned vr, const char *call) {
+/* Whether values of wire type `w` reach variables stored as `t` (an enumeration is an Int32 in FMI 2
+ * and an Int64 in FMI 3; a boolean is an int in FMI 2 and a 1-byte bool in FMI 3). */
+static int compatible(Wire w, VarType t) {
+    switch (w) {
+    case W_F64: return t == T_REAL;
+    case W_F32: return t == T_F32;
+    case W_I8: return t == T_I8;
+    case W_U8: return t == T_U8;
+    case W_I16: return t == T_I16;
+    case W_U16: return t == T_U16;
+    case W_I32: return t == T_INT || t == T_ENUM;
+    case W_U32: return t == T_U32;
+    case W_I64: return t == T_I64 || t == T_ENUM;
+    case W_U64: return t == T_U64;
+    case W_BOOL_INT: case W_BOOL8: return t == T_BOOL;
+    case W_STR: return t == T_STR;
+    case W_BIN: return t == T_BIN;
+    }
+    return 0;
+}
+
+static size_t wire_size(Wire w) {
+    static const size_t sizes[] = {sizeof(double), sizeof(float), 1, 1, 2, 2, 4, 4, 8, 8, sizeof(int), sizeof(bool),
+                                   sizeof(const char *), sizeof(const uint8_t *)};
+    return sizes[w];
+}
+
+static const VarInfo *lookup(Instance *inst, Wire wire, unsigned vr, const char *call) {
     if (vr >= NVARS) {
         core_log(inst, MODEL_ERROR, "logStatusError", "%s: unknown value reference %u", call, vr);
         return NULL;
     }
     const VarInfo *v = &VARS[vr];
-    if (v->type != type) {
-        core_log(inst, MODEL_ERROR, "logStatusError", "%s: variable %s (value reference %u) is not %s", call,
-                 v->name, vr, type_name(type));
+    if (!compatible(wire, (VarType)v->type)) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: variable %s (value reference %u) is not of type %s", call,
+                 v->name, vr, wire_name(wire));
         return NULL;
     }
     return v;
 }
 
-/* Check every reference and the value count before touching anything: a refused call changes nothing. */
-static int plan_access(Instance *inst, VarType type, const unsigned *vr, size_t nvr, size_t nvalues, bool set,
-                       const char *call) {
+/* Check every reference, every value and the value count before touching anything: a refused call
+ * changes nothing. */
+static int plan_access(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, const void *values,
+                       const size_t *sizes, size_t nvalues, bool set, const char *call) {
     size_t total = 0;
     for (size_t i = 0; i < nvr; ++i) {
-        const VarInfo *v = lookup(inst, type, vr[i], call);
+        const VarInfo *v = lookup(inst, wire, vr[i], call);
         if (!v) return MODEL_ERROR;
         if (set && !settable(inst, v)) {
             core_log(inst, MODEL_ERROR, "logStatusError", "%s: variable %s cannot be set now", call, v->name);
             return MODEL_ERROR;
+        }
+        for (size_t j = 0; set && j < v->count && total + j < nvalues; ++j) {
+            size_t k = total + j;
+            if (v->type == T_ENUM) {
+                int64_t x = wire == W_I64 ? ((const int64_t *)values)[k] : ((const int32_t *)values)[k];
+                if (x < INT32_MIN || x > INT32_MAX) {
+                    core_log(inst, MODEL_ERROR, "logStatusError", "%s: %lld is not a value of enumeration %s", call,
+                             (long long)x, v->name);
+                    return MODEL_ERROR;
+                }
+            } else if (v->type == T_STR) {
+                const char *text = ((const char *const *)values)[k];
+                if (!text || strlen(text) >= v->capacity) {
+                    core_log(inst, MODEL_ERROR, "logStatusError", "%s: a string of %zu bytes does not fit %s (at most "
+                             "%zu)", call, text ? strlen(text) : 0, v->name, v->capacity - 1);
+                    return MODEL_ERROR;
+                }
+            } else if (v->type == T_BIN) {
+                if (!sizes || sizes[k] > v->capacity || (sizes[k] && !((const uint8_t *const *)values)[k])) {
+                    core_log(inst, MODEL_ERROR, "logStatusError", "%s: %zu bytes do not fit %s (at most %zu)", call,
+                             sizes ? sizes[k] : 0, v->name, v->capacity);
+                    return MODEL_ERROR;
+                }
+            }
         }
         total += v->count;
     }
@@ -207,42 +274,59 @@ static int plan_access(Instance *inst, VarType type, const unsigned *vr, size_t 
     return MODEL_OK;
 }
 
-int core_set(Instance *inst, VarType type, const unsigned *vr, size_t nvr, const void *values, size_t nvalues,
-             bool bool8, const char *call) {
+typedef FMU_BINARY(1) BinaryHead; /* every binary field starts so, whatever its capacity */
+#define BINARY_DATA(field) ((uint8_t *)(field) + offsetof(BinaryHead, data))
+
+int core_set(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, const void *values, const size_t *sizes,
+             size_t nvalues, const char *call) {
     int s = core_usable(inst, call);
     if (s) return s;
     if (nvr && (!vr || !values)) return MODEL_ERROR;
-    s = plan_access(inst, type, vr, nvr, nvalues, true, call);
+    s = plan_access(inst, wire, vr, nvr, values, sizes, nvalues, true, call);
     if (s) return s;
-    size_t k = 0;
+    size_t k = 0, width = wire_size(wire);
     char *base = (char *)&inst->d;
     for (size_t i = 0; i < nvr; ++i) {
         const VarInfo *v = &VARS[vr[i]];
+        char *field = base + v->offset;
         for (size_t j = 0; j < v->count; ++j, ++k) {
-            if (type == T_REAL) ((double *)(base + v->offset))[j] = ((const double *)values)[k];
-            else if (type == T_INT) ((int32_t *)(base + v->offset))[j] = ((const int32_t *)values)[k];
-            else ((int32_t *)(base + v->offset))[j] = bool8 ? ((const bool *)values)[k] : ((const int *)values)[k] != 0;
+            const char *src = (const char *)values + k * width;
+            if (wire == W_BOOL_INT) ((int32_t *)field)[j] = *(const int *)src != 0;
+            else if (wire == W_BOOL8) ((int32_t *)field)[j] = *(const bool *)src;
+            else if (v->type == T_ENUM) ((int32_t *)field)[j] = wire == W_I64 ? (int32_t)*(const int64_t *)src
+                                                                            : *(const int32_t *)src;
+            else if (wire == W_STR) strcpy(field, *(const char *const *)src);
+            else if (wire == W_BIN) {
+                ((BinaryHead *)field)->size = (uint32_t)sizes[k];
+                if (sizes[k]) memcpy(BINARY_DATA(field), *(const uint8_t *const *)src, sizes[k]);
+            } else memcpy(field + j * width, src, width);
         }
     }
     return MODEL_OK;
 }
 
-int core_get(Instance *inst, VarType type, const unsigned *vr, size_t nvr, void *values, size_t nvalues, bool bool8,
+int core_get(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, void *values, size_t *sizes, size_t nvalues,
              const char *call) {
     int s = core_usable(inst, call);
     if (s) return s;
-    if (nvr && (!vr || !values)) return MODEL_ERROR;
-    s = plan_access(inst, type, vr, nvr, nvalues, false, call);
+    if (nvr && (!vr || !values || (wire == W_BIN && !sizes))) return MODEL_ERROR;
+    s = plan_access(inst, wire, vr, nvr, values, sizes, nvalues, false, call);
     if (s) return s;
-    size_t k = 0;
-    const char *base = (const char *)&inst->d;
+    size_t k = 0, width = wire_size(wire);
+    char *base = (char *)&inst->d;
     for (size_t i = 0; i < nvr; ++i) {
         const VarInfo *v = &VARS[vr[i]];
+        char *field = base + v->offset;
         for (size_t j = 0; j < v->count; ++j, ++k) {
-            if (type == T_REAL) ((double *)values)[k] = ((const double *)(base + v->offset))[j];
-            else if (type == T_INT) ((int32_t *)values)[k] = ((const int32_t *)(base + v->offset))[j];
-            else if (bool8) ((bool *)values)[k] = ((const int32_t *)(base + v->offset))[j] != 0;
-            else ((int *)values)[k] = ((const int32_t *)(base + v->offset))[j] != 0;
+            char *dst = (char *)values + k * width;
+            if (wire == W_BOOL_INT) *(int *)dst = ((const int32_t *)field)[j] != 0;
+            else if (wire == W_BOOL8) *(bool *)dst = ((const int32_t *)field)[j] != 0;
+            else if (v->type == T_ENUM && wire == W_I64) *(int64_t *)dst = ((const int32_t *)field)[j];
+            else if (wire == W_STR) *(const char **)dst = field;
+            else if (wire == W_BIN) {
+                *(const uint8_t **)dst = BINARY_DATA(field);
+                sizes[k] = ((BinaryHead *)field)->size;
+            } else memcpy(dst, field + j * width, width);
         }
     }
     return MODEL_OK;
@@ -285,6 +369,7 @@ int core_set_state(Instance *inst, void *state) {
     if (!saved) return MODEL_ERROR;
     memcpy(&inst->d, &saved->d, sizeof inst->d);
     inst->mode = saved->mode;
+    inst->stop = false;
     return MODEL_OK;
 }
 

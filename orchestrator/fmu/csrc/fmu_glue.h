@@ -16,15 +16,21 @@
 #define GLUE_INTERNAL
 #endif
 
-typedef enum { T_REAL, T_INT, T_BOOL } VarType;
+/* How a variable is stored in ModelData (see fmu_model.h). */
+typedef enum { T_REAL, T_INT, T_BOOL, T_F32, T_I8, T_U8, T_I16, T_U16, T_U32, T_I64, T_U64, T_ENUM, T_STR, T_BIN } VarType;
+/* How values cross the API: an FMI get/set function's value type. */
+typedef enum { W_F64, W_F32, W_I8, W_U8, W_I16, W_U16, W_I32, W_U32, W_I64, W_U64, W_BOOL_INT, W_BOOL8, W_STR,
+               W_BIN } Wire;
 typedef enum { C_INDEPENDENT, C_PARAMETER, C_INPUT, C_OUTPUT, C_LOCAL } VarCausality;
 typedef enum { V_CONSTANT, V_FIXED, V_TUNABLE, V_DISCRETE, V_CONTINUOUS } VarVariability;
 
-/* One value reference: `count` values of `type` at `offset` in ModelData. */
+/* One value reference: `count` values of `type` at `offset` in ModelData (a string or binary has
+ * room for `capacity` bytes). */
 typedef struct {
     unsigned char type, causality, variability, exact;
     size_t offset;
     size_t count;
+    size_t capacity;
     const char *name;
 } VarInfo;
 
@@ -41,6 +47,7 @@ typedef struct Instance {
     EmitFn emit;     /* the version's way to call the master's logger */
     void *env;       /* FMI 2: the callback functions; FMI 3: the instance environment */
     void *logger;    /* FMI 3: the log message callback */
+    bool stop;       /* the model asked to end the simulation in the last step (fmu_stop) */
 } Instance;
 
 /* A saved FMU state: the model data and the mode it was in. */
@@ -64,11 +71,12 @@ GLUE_INTERNAL int core_enter_init(Instance *inst, double start_time);
 GLUE_INTERNAL int core_exit_init(Instance *inst);
 GLUE_INTERNAL int core_do_step(Instance *inst, double t, double h);
 GLUE_INTERNAL int core_terminate(Instance *inst);
-/* value access; `bool8` says booleans are 1-byte C bools (FMI 3) instead of ints (FMI 2) */
-GLUE_INTERNAL int core_set(Instance *inst, VarType type, const unsigned *vr, size_t nvr, const void *values,
-                           size_t nvalues, bool bool8, const char *call);
-GLUE_INTERNAL int core_get(Instance *inst, VarType type, const unsigned *vr, size_t nvr, void *values,
-                           size_t nvalues, bool bool8, const char *call);
+/* value access: `values` is an array of the wire type (W_STR: const char *; W_BIN: const uint8_t *
+ * with `sizes`, NULL otherwise) */
+GLUE_INTERNAL int core_set(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, const void *values,
+                           const size_t *sizes, size_t nvalues, const char *call);
+GLUE_INTERNAL int core_get(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, void *values, size_t *sizes,
+                           size_t nvalues, const char *call);
 GLUE_INTERNAL int core_get_state(Instance *inst, void **state);
 GLUE_INTERNAL int core_set_state(Instance *inst, void *state);
 GLUE_INTERNAL int core_free_state(Instance *inst, void **state);

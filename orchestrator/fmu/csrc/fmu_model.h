@@ -17,11 +17,22 @@
  * Both return one of the MODEL_* codes (the FMI status numbering): MODEL_DISCARD refuses the step
  * (the master may roll back and retry), MODEL_ERROR fails the instance until it is reset or a saved
  * state is restored, MODEL_FATAL ends it. Say why with fmu_log() before returning anything but OK.
+ * A model that has reached its end (a tank empty, a game over) calls fmu_stop() in model_step and
+ * returns MODEL_OK: the master is asked to end the simulation there (FMI 3.0: terminateSimulation;
+ * FMI 2.0: fmi2Discard, and fmi2GetBooleanStatus(fmi2Terminated) says true).
+ *
+ * Field types (fmu.yaml `type:`): real double, float32 float, int8..uint64 the <stdint.h> types,
+ * integer int32_t, boolean int32_t (0 or 1), enumeration int32_t (1..the number of items), string
+ * char[capacity] (NUL-terminated), binary FmuBinary with `capacity` bytes of data.
  */
 #ifndef DYNABRAIN_FMU_MODEL_H
 #define DYNABRAIN_FMU_MODEL_H
 
 #include <stdint.h>
+
+/* A binary variable: `size` bytes of `data` are its value (the generated field has room for the
+ * variable's `capacity`). */
+#define FMU_BINARY(capacity) struct { uint32_t size; uint8_t data[capacity]; }
 
 #include "model_data.h" /* generated from fmu.yaml */
 
@@ -34,6 +45,13 @@ int model_step(ModelData *m, double h);
 void fmu_log(const ModelData *m, int status, const char *format, ...)
 #if defined(__GNUC__)
     __attribute__((format(printf, 3, 4)))
+#endif
+    ;
+
+/* Ask the master to end the simulation after this step (say why, printf format). */
+void fmu_stop(const ModelData *m, const char *format, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 2, 3)))
 #endif
     ;
 
