@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dynabrain.orchestrator.fmu import FMUCallError, FMUDiscardError, FMUError, make_fmu_module
+from dynabrain.orchestrator.fmu import FMUCallError, FMUDiscardError, FMUError, FMUUnusableError, make_fmu_module
 from dynabrain.orchestrator.fmu.build import build_fmu, compile_library, package_fmu
 from dynabrain.orchestrator.kernel.errors import DynabrainError, ModuleError, ScenarioError
 from dynabrain.orchestrator.kernel.world import World
@@ -223,9 +223,14 @@ def test_fatal_status_ends_the_instance_cleanly(faulty):
     with pytest.raises(FMUCallError, match=r"fmi2Fatal.*melted the model"):
         w.tick()
     w.set("f.u", 0.0)
-    with pytest.raises(FMUCallError, match=r"fatal error earlier; no call is allowed.*isolate: true"):
-        w.tick()
+    for _ in range(2):  # refused, naming the FMU, every time
+        with pytest.raises(FMUUnusableError, match=r"module 'f': fmi2DoStep\(\) at tick 2 failed: .*faulty.* reported "
+                           r"a fatal error earlier \(fmi2DoStep: fmi2Fatal.*melted.*\); no call is allowed on it but "
+                           r"freeing it. Remove the module.*isolate: true"):
+            w.tick()
     assert w.tick_count == 2
+    w.remove_module("f")
+    w.tick()
     w.close()  # no call reaches the dead instance; nothing crashes
 
 

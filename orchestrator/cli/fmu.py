@@ -4,13 +4,15 @@
 - ``build DIR``: compile against the FMI headers, package and validate (``--fmi 2|3``, default every
   version fmu.yaml lists; ``-o`` a folder to copy the .fmu files into, else they stay in the cache);
 - ``check FILE``: validate a .fmu (or a source folder, built first), run it briefly, check the
-  save/restore round trip, replay equality and fork.
+  save/restore round trip, replay equality and fork (``--ticks``: no run goes further; an FMU that
+  asks to end the simulation is checked up to there). Each problem is printed once.
 
 Exit codes: 0 ok, 1 a check failed, 2 bad input (a build error, a broken FMU).
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Annotated
 
@@ -66,11 +68,18 @@ def build(folder: Annotated[Path, typer.Argument(help="a source folder with fmu.
 
 @fmu_app.command("check")
 def check(fmu: Annotated[str, typer.Argument(help="a .fmu file or a source folder (add @fmi3 to pick a version)")],
-          ticks: Annotated[int, typer.Option(help="steps of the short simulation")] = 40) -> None:
-    """Validate an FMU, run it briefly and check save/restore, replay and fork."""
+          ticks: Annotated[int, typer.Option(min=12, help="ticks every run of the check may take at most (the "
+                                                          "FMU's default step each; at least 12)")] = 40) -> None:
+    """Validate an FMU, run it briefly and check save/restore, replay and fork. An FMU that asks to end
+    the simulation is checked up to there."""
     from ..fmu.check import check_fmu
 
-    report = check_fmu(fmu, ticks=ticks)
+    once = _Once()  # the FMU's log lines: each once (its errors are in the report)
+    logging.getLogger("dynabrain.fmu").addFilter(once)
+    try:
+        report = check_fmu(fmu, ticks=ticks)
+    finally:
+        logging.getLogger("dynabrain.fmu").removeFilter(once)
     if report.info is None:
         err_console.print(f"error: {report.problems[0]}", markup=False)
         raise typer.Exit(2)
@@ -79,6 +88,21 @@ def check(fmu: Annotated[str, typer.Argument(help="a .fmu file or a source folde
                   f"parameters; get/set state: {info.can_get_set}, serialize: {info.can_serialize}", markup=False)
     console.print(str(report), markup=False)
     raise typer.Exit(0 if report.ok else 1)
+
+
+class _Once(logging.Filter):
+    """Lets each message through once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        if text in self.seen:
+            return False
+        self.seen.add(text)
+        return True
 
 
 def register(app: typer.Typer) -> None:

@@ -15,10 +15,19 @@ from typing import Any
 
 from ..kernel.errors import DynabrainError
 from ..kernel.module import Module
-from .errors import FMUBuildError, FMUCallError, FMUCrashError, FMUDiscardError, FMUError, FMUTimeoutError
+from .errors import (
+    FMUBuildError,
+    FMUCallError,
+    FMUCrashError,
+    FMUDiscardError,
+    FMUError,
+    FMUTerminatedError,
+    FMUTimeoutError,
+    FMUUnusableError,
+)
 
-__all__ = ["FMUBuildError", "FMUCallError", "FMUCrashError", "FMUDiscardError", "FMUError", "FMUTimeoutError",
-           "load_fmu_info", "make_fmu_module"]
+__all__ = ["FMUBuildError", "FMUCallError", "FMUCrashError", "FMUDiscardError", "FMUError", "FMUTerminatedError",
+           "FMUTimeoutError", "FMUUnusableError", "load_fmu_info", "make_fmu_module"]
 
 
 def load_fmu_info(fmu: str, *, base_dir: str = "."):
@@ -34,22 +43,27 @@ def load_fmu_info(fmu: str, *, base_dir: str = "."):
 
 
 def make_fmu_module(name: str, fmu: str, *, base_dir: str, params: dict[str, Any], targets: list[str],
-                    isolate: bool = False, call_timeout: float | None = None) -> Module:
+                    isolate: bool = False, call_timeout: float | None = None,
+                    start_time: float | None = None) -> Module:
     """A module for the FMU at ``fmu`` (a ``.fmu`` file or a source folder, relative to ``base_dir``
     or one of its parent folders). ``isolate``: run it in a process of its own; ``call_timeout``
-    (seconds, isolated only): how long one call may take before the process is killed."""
+    (seconds, isolated only): how long one call may take before the process is killed;
+    ``start_time`` (seconds): the FMU's time at world time 0, instead of its description's
+    ``DefaultExperiment.startTime``. Variables not on the bus (strings, binaries as inputs and
+    outputs) are listed once, as a warning of the ``dynabrain.fmu`` logger."""
     if call_timeout is not None and not isolate:
         raise FMUError(f"module {name!r}: call_timeout applies to an isolated FMU (isolate: true)")
     info = load_fmu_info(fmu, base_dir=base_dir)
     _check_params(name, info, params)
+    from .module import FMUModule, list_not_on_bus
+
+    list_not_on_bus(info)
     if isolate:
         from .isolate import CALL_TIMEOUT_S, IsolatedFMUModule
 
-        return IsolatedFMUModule(name, info, source=fmu, targets=targets,
+        return IsolatedFMUModule(name, info, source=fmu, targets=targets, start_time=start_time,
                                  call_timeout=CALL_TIMEOUT_S if call_timeout is None else call_timeout, **params)
-    from .module import FMUModule
-
-    return FMUModule(name, info, source=fmu, targets=targets, **params)
+    return FMUModule(name, info, source=fmu, targets=targets, start_time=start_time, **params)
 
 
 def _check_params(name: str, info: Any, params: dict[str, Any]) -> None:

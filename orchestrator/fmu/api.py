@@ -198,10 +198,37 @@ class FmuApi:
 
     # -- values -----------------------------------------------------------------------------------------
     def set_values(self, kind: str, vrs: np.ndarray, values: np.ndarray) -> None:
+        """Set variables of a number or boolean ``kind`` (`info.BUS_KINDS`) from ``values`` (``DTYPES[kind]``)."""
         raise NotImplementedError
 
     def get_values(self, kind: str, vrs: np.ndarray, out: np.ndarray) -> None:
         raise NotImplementedError
+
+    def set_strings(self, vrs: np.ndarray, values: list[str]) -> None:
+        buf = (c_char_p * len(values))(*[v.encode("utf-8") for v in values])
+        self._call("set_string", self.instance, vrs.ctypes.data, len(vrs), ctypes.addressof(buf),
+                   *self._count(len(values)))
+
+    def get_strings(self, vrs: np.ndarray) -> list[str]:
+        buf = (c_char_p * len(vrs))()
+        self._call("get_string", self.instance, vrs.ctypes.data, len(vrs), ctypes.addressof(buf),
+                   *self._count(len(vrs)))
+        return [(v or b"").decode("utf-8", "replace") for v in buf]
+
+    def set_binaries(self, vrs: np.ndarray, values: list[bytes]) -> None:
+        raise FMUError(f"{self.info.label}: FMI {self.version}.0 has no binary variables")
+
+    def get_binaries(self, vrs: np.ndarray) -> list[bytes]:
+        raise FMUError(f"{self.info.label}: FMI {self.version}.0 has no binary variables")
+
+    def _count(self, n: int) -> tuple[int, ...]:
+        """The value count FMI 3.0 calls take after the values (FMI 2.0 takes none)."""
+        return (n,) if self.version == 3 else ()
+
+    def terminated(self) -> bool:
+        """Whether the FMU asked to end the simulation in its last step (FMI 2.0 asks with fmi2Discard
+        and says so through fmi2GetBooleanStatus(fmi2Terminated); FMI 3.0 says it in fmi3DoStep)."""
+        return False
 
     def do_step(self, t: float, h: float, no_prior: bool) -> int:
         raise NotImplementedError
@@ -244,18 +271,29 @@ _COMMON2 = {
     "state_size": ("fmi2SerializedFMUstateSize", c_int, (_P, _P, _P)),
     "serialize": ("fmi2SerializeFMUstate", c_int, (_P, _P, _P, c_size_t)),
     "deserialize": ("fmi2DeSerializeFMUstate", c_int, (_P, _P, c_size_t, _P)),
+    "boolean_status": ("fmi2GetBooleanStatus", c_int, (_P, c_int, _P)),
 }
+_FMI2_TERMINATED = 3  # fmi2StatusKind fmi2Terminated
+_TYPES2 = {"real": "Real", "integer": "Integer", "boolean": "Boolean", "string": "String"}
 
 
 class Fmi2Api(FmuApi):
     version = 2
-    TYPES: ClassVar[dict[str, str]] = {"real": "Real", "integer": "Integer", "boolean": "Boolean"}
     CALLS: ClassVar[dict[str, tuple[str, Any, tuple[Any, ...]]]] = {
         **_COMMON2,
         **{f"{op}_{k}": (f"fmi2{op.capitalize()}{t}", c_int, (_P, _P, c_size_t, _P))
-           for op in ("set", "get") for k, t in {"real": "Real", "integer": "Integer", "boolean": "Boolean"}.items()},
+           for op in ("set", "get") for k, t in _TYPES2.items()},
     }
     DTYPES: ClassVar[dict[str, Any]] = {"real": np.float64, "integer": np.int32, "boolean": np.int32}
+
+    def terminated(self) -> bool:
+        value = ctypes.c_int(0)
+        self.enter("fmi2GetBooleanStatus")
+        status = self.c["boolean_status"](self.instance, _FMI2_TERMINATED, ctypes.addressof(value))
+        if status > 1:  # an FMU that cannot say has not asked
+            self.sink.take()
+            return False
+        return bool(value.value)
 
     def instantiate(self, logging_on: bool = False) -> None:
         self._callbacks = _fmi2_callbacks(self.sink.key)
@@ -285,20 +323,30 @@ class Fmi2Api(FmuApi):
         return self._call("do_step", self.instance, t, h, int(no_prior))
 
 
+_TYPES3 = {"real": "Float64", "float32": "Float32", "int8": "Int8", "uint8": "UInt8", "int16": "Int16",
+           "uint16": "UInt16", "integer": "Int32", "uint32": "UInt32", "int64": "Int64", "uint64": "UInt64",
+           "boolean": "Boolean", "string": "String"}
+
+
 class Fmi3Api(FmuApi):
     version = 3
     CALLS: ClassVar[dict[str, tuple[str, Any, tuple[Any, ...]]]] = {
         **{k: (c.replace("fmi2", "fmi3").replace("FMUstate", "FMUState"), r, a) for k, (c, r, a) in _COMMON2.items()
-           if k not in ("instantiate", "setup", "enter_init", "do_step", "deserialize")},
+           if k not in ("instantiate", "setup", "enter_init", "do_step", "deserialize", "boolean_status")},
         "instantiate": ("fmi3InstantiateCoSimulation", c_void_p,
                         (c_char_p, c_char_p, c_char_p, c_bool, c_bool, c_bool, c_bool, _P, c_size_t, _P, _P, _P)),
         "enter_init": ("fmi3EnterInitializationMode", c_int, (_P, c_bool, c_double, c_double, c_bool, c_double)),
         "do_step": ("fmi3DoStep", c_int, (_P, c_double, c_double, c_bool, _P, _P, _P, _P)),
         "deserialize": ("fmi3DeserializeFMUState", c_int, (_P, _P, c_size_t, _P)),
         **{f"{op}_{k}": (f"fmi3{op.capitalize()}{t}", c_int, (_P, _P, c_size_t, _P, c_size_t))
-           for op in ("set", "get") for k, t in {"real": "Float64", "integer": "Int32", "boolean": "Boolean"}.items()},
+           for op in ("set", "get") for k, t in _TYPES3.items()},
+        "set_binary": ("fmi3SetBinary", c_int, (_P, _P, c_size_t, _P, _P, c_size_t)),
+        "get_binary": ("fmi3GetBinary", c_int, (_P, _P, c_size_t, _P, _P, c_size_t)),
     }
-    DTYPES: ClassVar[dict[str, Any]] = {"real": np.float64, "integer": np.int32, "boolean": np.bool_}
+    DTYPES: ClassVar[dict[str, Any]] = {"real": np.float64, "float32": np.float32, "int8": np.int8, "uint8": np.uint8,
+                                        "int16": np.int16, "uint16": np.uint16, "integer": np.int32,
+                                        "uint32": np.uint32, "int64": np.int64, "uint64": np.uint64,
+                                        "boolean": np.bool_}
 
     def __init__(self, info: FmuInfo, unzip_dir: str, name: str):
         super().__init__(info, unzip_dir, name)
@@ -327,6 +375,20 @@ class Fmi3Api(FmuApi):
     def get_values(self, kind: str, vrs: np.ndarray, out: np.ndarray) -> None:
         if len(vrs):
             self._call(f"get_{kind}", self.instance, vrs.ctypes.data, len(vrs), out.ctypes.data, out.size)
+
+    def set_binaries(self, vrs: np.ndarray, values: list[bytes]) -> None:
+        n = len(values)
+        data = [ctypes.create_string_buffer(v, len(v) or 1) for v in values]
+        sizes = (c_size_t * n)(*[len(v) for v in values])
+        ptrs = (c_void_p * n)(*[ctypes.addressof(d) for d in data])
+        self._call("set_binary", self.instance, vrs.ctypes.data, len(vrs), ctypes.addressof(sizes),
+                   ctypes.addressof(ptrs), n)
+
+    def get_binaries(self, vrs: np.ndarray) -> list[bytes]:
+        n = len(vrs)
+        sizes, ptrs = (c_size_t * n)(), (c_void_p * n)()
+        self._call("get_binary", self.instance, vrs.ctypes.data, n, ctypes.addressof(sizes), ctypes.addressof(ptrs), n)
+        return [ctypes.string_at(p, size) if size else b"" for p, size in zip(ptrs, sizes, strict=True)]
 
     def do_step(self, t: float, h: float, no_prior: bool) -> int:
         base = self._flag_bytes.ctypes.data

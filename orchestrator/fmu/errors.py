@@ -38,6 +38,18 @@ class FMUDiscardError(FMUCallError):
     tick; retry with other inputs or a smaller step."""
 
 
+class FMUTerminatedError(FMUCallError):
+    """The FMU asked to end the simulation (FMI 3.0 ``terminateSimulation``; FMI 2.0 a step discarded
+    with ``fmi2Terminated``). The world rolls the tick back; a scenario's run ends there."""
+
+
+class FMUUnusableError(FMUCallError):
+    """An FMU that failed (an error, a discarded step, a fatal error) and cannot be brought back to a
+    state from before (it cannot get and set its state, or restoring one failed): the FMI standard
+    allows only to reset or free it then. Every later step is refused naming it; remove the module or
+    load the world again. (An isolated FMU is restarted from scratch instead, its state lost.)"""
+
+
 class FMUCrashError(ModuleError):
     """The process running an isolated FMU died (a segfault, an abort). The world rolls back to the
     last good tick; the next step restarts the FMU from that tick's state."""

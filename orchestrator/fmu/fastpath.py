@@ -3,7 +3,8 @@
 With a C compiler (the one that builds FMUs), a small helper (``csrc/dyn_step.c``, compiled once
 into the cache) makes the four FMI calls of a step from one ctypes call, reading and writing the
 world's bus in place. Without one, `Stepper` makes the same calls from Python (about twice the
-cost). Both take ``(plan, t_ns, slot)``, step from ``t_ns`` by the bound step size, and return 0
+cost). Both take ``(plan, t_ns, slot)``, step from ``t_ns`` (plus the FMU's start time) by the bound
+step size, check that the real outputs are finite (`NONFINITE` otherwise), and return 0
 or a code `decode` turns into the failing call and its status. ``DYNABRAIN_FMU_FASTPATH=0``
 forces the Python path.
 """
@@ -31,7 +32,7 @@ from .paths import SHARED_LIB_EXT, cache_dir, glue_dir
 _log = logging.getLogger("dynabrain.fmu")
 CALLS = {2: {1: "fmi2SetReal", 2: "fmi2DoStep", 3: "fmi2GetReal", 4: "fmi2GetFMUstate"},
          3: {1: "fmi3SetFloat64", 2: "fmi3DoStep", 3: "fmi3GetFloat64", 4: "fmi3GetFMUState"}}
-TERMINATE, EARLY_RETURN = 6, 7
+TERMINATE, EARLY_RETURN, NONFINITE = 6, 7, 8
 
 
 class Plan(ctypes.Structure):
@@ -40,7 +41,7 @@ class Plan(ctypes.Structure):
     _fields_ = [("instance", c_void_p), ("set_real", c_void_p), ("do_step", c_void_p), ("get_real", c_void_p),
                 ("get_state", c_void_p), ("in_vr", c_void_p), ("n_in_vr", c_size_t), ("in_", c_void_p),
                 ("n_in", c_size_t), ("out_vr", c_void_p), ("n_out_vr", c_size_t), ("out", c_void_p),
-                ("n_out", c_size_t), ("fmi3", c_int), ("no_prior", c_int), ("h", c_double)]
+                ("n_out", c_size_t), ("fmi3", c_int), ("no_prior", c_int), ("h", c_double), ("t0", c_double)]
 
 
 @functools.cache
@@ -93,6 +94,7 @@ class Stepper:
         self._keep: tuple[Any, ...] = ()
         self.plan = Plan()
         self.set_step(1_000_000)
+        self.set_start_time(0.0)
         self._flags = np.zeros(4, dtype=np.float64).view(np.uint8)  # FMI 3 DoStep's flags and time
         self.fn: Callable[..., int]
         self.arg: int
@@ -128,9 +130,13 @@ class Stepper:
         self.dt_ns = dt_ns
         self.plan.h = dt_ns / 1e9
 
+    def set_start_time(self, t0: float) -> None:
+        """The FMU's time at world time 0: a step from ``t_ns`` starts at ``t0 + t_ns / 1e9`` seconds."""
+        self.t0 = self.plan.t0 = float(t0)
+
     def _py_step(self, _arg: int, t_ns: int, slot: int) -> int:
         p, trace, names = self.plan, self.trace, CALLS[self.version]
-        t, h = t_ns / 1e9, p.h
+        t, h = self.t0 + t_ns / 1e9, p.h
         warn = 0
         for call in (1, 2, 3, 4):
             if (call == 1 and not p.n_in_vr) or (call == 3 and not p.n_out_vr) or (call == 4 and not slot):
@@ -144,6 +150,8 @@ class Stepper:
                 warn = (call << 4) | 1
             if call == 2 and self.version == 3 and self._flags[1]:
                 return (2 << 4) | TERMINATE
+        if p.n_out and not np.isfinite(self._keep[1][:p.n_out]).all():
+            return (3 << 4) | NONFINITE
         return warn
 
     def _one(self, call: int, t: float, h: float, slot: int) -> int:

@@ -3,12 +3,20 @@
 Inputs and outputs become ports, parameters become module parameters (tunable ones can change at
 run time). A vector (an FMI 3.0 array, or FMI 2.0 scalars named ``u[1]``..``u[n]``) is one block
 port ``u`` of shape (n,) with a view port per element (``u[1]``...), so it connects as a whole or
-element by element. Ports of type real come first, then integers, then booleans: the adapter sets
-and gets each kind with one call.
+element by element. Ports of type real come first, then the other kinds (`BUS_KINDS` order): the
+adapter sets and gets each kind with one call.
+
+On the bus (float64): every number type and booleans (FMI 2.0: Real, Integer, Enumeration, Boolean;
+FMI 3.0: Float64, Float32, Int8 to UInt64, Boolean, Enumeration). Each converts to float64 exactly,
+but 64-bit integers beyond 2^53: a variable that declares such a start, minimum or maximum is refused
+here, and a value beyond it at run time fails its step (`session`). Strings, binaries and clocks are
+not on the bus: as parameters they are set at load (and at run time when tunable), as inputs and
+outputs they are listed in `FmuInfo.skipped`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import zipfile
 from dataclasses import dataclass
@@ -18,10 +26,19 @@ from typing import Any
 from .errors import FMUError
 from .paths import SHARED_LIB_EXT, binary_dir
 
-_TYPES2 = {"Real": "real", "Integer": "integer", "Enumeration": "integer", "Boolean": "boolean"}
-_TYPES3 = {"Float64": "real", "Int32": "integer", "Boolean": "boolean"}
+_TYPES2 = {"Real": "real", "Integer": "integer", "Enumeration": "integer", "Boolean": "boolean", "String": "string"}
+_TYPES3 = {"Float64": "real", "Float32": "float32", "Int8": "int8", "UInt8": "uint8", "Int16": "int16",
+           "UInt16": "uint16", "Int32": "integer", "UInt32": "uint32", "Int64": "int64", "UInt64": "uint64",
+           "Boolean": "boolean", "Enumeration": "int64", "String": "string", "Binary": "binary"}
+BUS_KINDS = ("real", "float32", "int8", "uint8", "int16", "uint16", "integer", "uint32", "int64", "uint64", "boolean")
+"""The kinds of variables on the bus, in the order a module's ports are laid out."""
+INT_RANGES = {"int8": (-2**7, 2**7 - 1), "uint8": (0, 2**8 - 1), "int16": (-2**15, 2**15 - 1),
+              "uint16": (0, 2**16 - 1), "integer": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1),
+              "int64": (-2**63, 2**63 - 1), "uint64": (0, 2**64 - 1)}
+EXACT = 2**53
+"""Integers up to this size are exact in float64 (the bus)."""
 _KIND = {"input": "input", "output": "output", "parameter": "parameter"}
-_ORDER = {"real": 0, "integer": 1, "boolean": 2}
+_ORDER = {kind: i for i, kind in enumerate(BUS_KINDS)}
 _ELEMENT = re.compile(r"^(.+)\[(\d+)\]$")
 DIMENSIONS = {"s": "time", "Hz": "frequency", "kg": "mass", "m": "length", "rad": "angle", "N": "force",
               "N*m": "torque", "m/s": "velocity", "rad/s": "angular_velocity", "m/s^2": "acceleration",
@@ -36,7 +53,8 @@ class Signal:
     kind: str
     """``input``, ``output`` or ``parameter``."""
     type: str
-    """``real``, ``integer`` or ``boolean``."""
+    """``real`` (float64), ``integer`` (int32), ``boolean``, ``float32``, ``int8`` ... ``uint64`` (`BUS_KINDS`),
+    ``string`` or ``binary``."""
     vrs: tuple[int, ...]
     shape: tuple[int, ...]
     unit: str
@@ -45,6 +63,8 @@ class Signal:
     description: str
     depends: tuple[int, ...] | None = None
     """For an output: value references of the inputs it depends on directly (None: all)."""
+    fmi_type: str = ""
+    """The FMI type as the model description writes it (``Enumeration``, ``Int64``, ...)."""
 
     @property
     def size(self) -> int:
@@ -75,6 +95,8 @@ class FmuInfo:
     default_step: float | None
     source: str = ""
     """What the user named (a source folder, a file); the path when empty."""
+    start_time: float = 0.0
+    """``DefaultExperiment.startTime``: the FMU's time when it joins a world at t=0 (0 when not given)."""
 
     @property
     def label(self) -> str:
@@ -113,11 +135,13 @@ def read_fmu_info(path: str | Path, label: str | None = None) -> FmuInfo:
                        "dynabrain runs co-simulation FMUs (export it for co-simulation)")
     _check_binary(names, version, cs.modelIdentifier, name)
     inputs, outputs, params, skipped = _signals(md, version, name)
-    step = float(md.defaultExperiment.stepSize) if md.defaultExperiment and md.defaultExperiment.stepSize else None
+    experiment = md.defaultExperiment
+    step = float(experiment.stepSize) if experiment and experiment.stepSize else None
+    start = float(experiment.startTime) if experiment and experiment.startTime else 0.0
     return FmuInfo(str(path), version, md.modelName, cs.modelIdentifier, md.guid or "", md.description or "",
                    bool(cs.canGetAndSetFMUstate), bool(cs.canGetAndSetFMUstate and cs.canSerializeFMUstate),
                    bool(cs.canBeInstantiatedOnlyOncePerProcess), inputs, outputs, params, tuple(skipped), step,
-                   label or "")
+                   label or "", start)
 
 
 def _read_description(path: Path, name: str) -> Any:
@@ -148,6 +172,10 @@ def _unit(variable: Any) -> str:
 
 def _start_values(variable: Any, kind: str, count: int) -> tuple[Any, ...]:
     raw = variable.start
+    if kind == "string":
+        return ("" if raw is None else str(raw),)
+    if kind == "binary":
+        return (bytes.fromhex(str(raw or "")),)
     if raw is None:
         values: list[Any] = [0] * count
     else:
@@ -156,8 +184,8 @@ def _start_values(variable: Any, kind: str, count: int) -> tuple[Any, ...]:
     for v in values:
         if kind == "boolean":
             out.append(v in ("true", "1", True, 1))
-        elif kind == "integer":
-            out.append(int(float(v)))
+        elif kind in INT_RANGES:
+            out.append(int(v) if isinstance(v, int) or str(v).lstrip("+-").isdigit() else int(float(v)))
         else:
             out.append(float(v))
     if len(out) == 1 and count > 1:
@@ -182,31 +210,51 @@ def _shape(variable: Any, md: Any, name: str) -> tuple[int, ...]:
 def _signals(md: Any, version: int, name: str) -> tuple[tuple[Signal, ...], ...]:
     types = _TYPES2 if version == 2 else _TYPES3
     loose: list[tuple[Any, str, tuple[int, ...]]] = []
-    skipped, bad = [], []
+    skipped, ports = [], 0
     for v in md.modelVariables:
         if v.causality not in _KIND:
             continue
         kind = types.get(v.type)
-        if kind is None:
-            why = f"{v.name} ({v.causality}, type {v.type}: not supported)"
-            (bad if v.causality != "parameter" else skipped).append(why)
+        on_bus = kind in BUS_KINDS
+        if v.causality != "parameter":
+            ports += 1
+        if kind is None or (v.causality != "parameter" and not on_bus):
+            why = "not supported" if kind is None else "not on the bus"
+            skipped.append(f"{v.name} ({v.causality}, {v.type}: {why})")
             continue
         shape = _shape(v, md, name) if version == 3 else ()
+        if kind in ("int64", "uint64") and v.causality != "parameter":
+            _check_exact(v, name)
         loose.append((v, kind, shape))
-    if bad:
-        raise FMUError(f"FMU {name}: inputs and outputs of these types cannot be on the bus: {', '.join(bad)} "
-                       "(supported: float64, int32, boolean)")
+    if ports and not any(v.causality != "parameter" for v, _, _ in loose):
+        raise FMUError(f"FMU {name}: none of its inputs and outputs can be on the bus: {', '.join(skipped)} (the bus "
+                       "takes numbers and booleans: FMI 2.0 Real, Integer, Enumeration, Boolean; FMI 3.0 Float64, "
+                       "Float32, Int8 to UInt64, Boolean, Enumeration)")
     groups = _group(loose)
     by_vr = {}
     for sig in groups:
         for vr in sig.vrs:
             by_vr[vr] = sig
     outputs = tuple(_with_depends(s, md, by_vr) for s in groups if s.kind == "output")
-    pick = [tuple(sorted((s for s in groups if s.kind == k), key=lambda s: _ORDER[s.type]))
+    order = {**_ORDER, "string": len(_ORDER), "binary": len(_ORDER) + 1}
+    pick = [tuple(sorted((s for s in groups if s.kind == k), key=lambda s: order[s.type]))
             for k in ("input", "parameter")]
     outputs = tuple(sorted(outputs, key=lambda s: _ORDER[s.type]))
     _check_names(pick[0], outputs, pick[1], name)
     return pick[0], outputs, pick[1], skipped
+
+
+def _check_exact(variable: Any, name: str) -> None:
+    """A 64-bit integer on the bus (float64) must stay within 2^53: refuse one that declares more."""
+    declared = variable.declaredType
+    for what, raw in (("start", variable.start), ("min", variable.min), ("max", variable.max),
+                      ("min", getattr(declared, "min", None)), ("max", getattr(declared, "max", None))):
+        if raw is None:
+            continue
+        values = [int(x) for x in str(raw).split()]
+        if any(abs(x) > EXACT for x in values):
+            raise FMUError(f"FMU {name}: {variable.type} {variable.causality} {variable.name!r} declares {what}="
+                           f"{raw}, beyond 2^53: the bus (float64) holds integers exactly only up to 2^53")
 
 
 def _group(loose: list[tuple[Any, str, tuple[int, ...]]]) -> list[Signal]:
@@ -226,7 +274,7 @@ def _group(loose: list[tuple[Any, str, tuple[int, ...]]]) -> list[Signal]:
             continue
         start = tuple(x for v in vs for x in _start_values(v, kind, 1))
         sig = Signal(base, _KIND[causality], kind, tuple(v.valueReference for v in vs), (len(vs),), units.pop(),
-                     start, tunable.pop(), vs[0].description or "")
+                     start, tunable.pop(), vs[0].description or "", fmi_type=vs[0].type)
         for v in vs:
             grouped[id(v)] = sig
     out: list[Signal] = []
@@ -238,7 +286,8 @@ def _group(loose: list[tuple[Any, str, tuple[int, ...]]]) -> list[Signal]:
             for d in shape:
                 count *= d
             sig = Signal(v.name, _KIND[v.causality], kind, (v.valueReference,), shape, _unit(v),
-                         _start_values(v, kind, count), v.variability == "tunable", v.description or "")
+                         _start_values(v, kind, count), v.variability == "tunable", v.description or "",
+                         fmi_type=v.type)
         if id(sig) not in seen:
             seen.add(id(sig))
             out.append(sig)
@@ -262,8 +311,7 @@ def _with_depends(sig: Signal, md: Any, by_vr: dict[int, Signal]) -> Signal:
                 deps.add(dep.valueReference)
     if not listed:
         deps = None
-    return Signal(sig.name, sig.kind, sig.type, sig.vrs, sig.shape, sig.unit, sig.start, sig.tunable,
-                  sig.description, None if deps is None else tuple(sorted(deps)))
+    return dataclasses.replace(sig, depends=None if deps is None else tuple(sorted(deps)))
 
 
 def _check_names(inputs: tuple[Signal, ...], outputs: tuple[Signal, ...], params: tuple[Signal, ...],

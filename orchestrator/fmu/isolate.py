@@ -5,8 +5,13 @@ serialized FMU state out, once per step. If the FMU kills its process (a segfaul
 step raises `FMUCrashError` naming the module, the FMI call that was running, the signal and the
 child's last output; the world rolls back to the last good tick (the kernel does that for any
 failed step) and hands this module that tick's state. The next step starts a fresh process,
-instantiates the FMU and restores that state, so the world goes on; an FMU that cannot serialize
-its state cannot be brought back, and every later step says so (the world stops cleanly).
+instantiates the FMU and restores that state, so the world goes on. A fatal error, or a failure the
+FMU cannot undo (see `session`: unusable), ends its process the same way.
+
+An FMU that cannot serialize its state has none here to come back to: the next step restarts it from
+scratch (instantiated and initialized at that tick, with the current parameters and inputs), and the
+failing step's error and a warning of the ``dynabrain.fmu`` logger say that its state was lost;
+`restarts` lists each restart.
 
 The state lives in this process as bytes (`SerializedFMUState`), so the module can roll back and
 fork when the FMU can serialize its state, and neither when it cannot.
@@ -15,6 +20,7 @@ fork when the FMU can serialize its state, and neither when it cannot.
 from __future__ import annotations
 
 import contextlib
+import logging
 import mmap
 import shutil
 import signal
@@ -26,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..kernel.errors import DynabrainError
+from ..kernel.errors import DynabrainError, NonFiniteOutputError
 from ..kernel.module import Capabilities, SetupContext
 from ..kernel.workers import spawn_worker
 from . import errors as fmu_errors
@@ -36,6 +42,7 @@ from .module import FMUModuleBase
 from .states import SerializedFMUState
 from .worker import TRACE_SIZE
 
+_log = logging.getLogger("dynabrain.fmu")
 STOP_TIMEOUT_S = 5.0
 CALL_TIMEOUT_S = 30.0
 """How long one call of an isolated FMU may take by default (``call_timeout`` in a scenario)."""
@@ -116,8 +123,8 @@ class IsolatedFMUModule(FMUModuleBase):
     """An FMU module whose FMU runs in a child process. See the module docstring."""
 
     def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (),
-                 call_timeout: float = CALL_TIMEOUT_S, **params: Any):
-        super().__init__(name, info, source=source, targets=targets, **params)
+                 call_timeout: float = CALL_TIMEOUT_S, start_time: float | None = None, **params: Any):
+        super().__init__(name, info, source=source, targets=targets, start_time=start_time, **params)
         if not call_timeout > 0:
             raise FMUError(f"module {name!r}: call_timeout must be a positive duration, got {call_timeout!r}")
         self.call_timeout = float(call_timeout)
@@ -125,15 +132,16 @@ class IsolatedFMUModule(FMUModuleBase):
         self._child: _Child | None = None
         self._state: SerializedFMUState | None = None
         self._pending: SerializedFMUState | None = None
-        self._lost: str | None = None  # why the FMU is gone for good
         self._started = False
+        self.restarts: list[str] = []
+        """Each restart from scratch (its state lost), as the warning said it."""
         self._t0_ns = 0
         self._bind_buffers()
 
     @staticmethod
     def capabilities(info: FmuInfo) -> Capabilities:
         return Capabilities(can_rollback=info.can_serialize, can_fork=info.can_serialize,
-                            feedthrough=info.feedthrough)
+                            feedthrough=info.feedthrough)  # the world checks the outputs are finite
 
     # -- the child -------------------------------------------------------------------------------------
     def _spawn(self) -> None:
@@ -141,7 +149,7 @@ class IsolatedFMUModule(FMUModuleBase):
         self._child = _Child(self.info.label)
         try:
             self._request("open", self.info, self.name, self.CAPABILITIES.can_rollback, str(self._child.dir / "fmu"),
-                          timeout=max(self.call_timeout, START_TIMEOUT_S))
+                          self.start_time, timeout=max(self.call_timeout, START_TIMEOUT_S))
         except BaseException:
             child, self._child = self._child, None
             if child is not None:
@@ -152,7 +160,7 @@ class IsolatedFMUModule(FMUModuleBase):
         """One request to the child, answered within ``timeout`` (default: ``call_timeout``)."""
         child = self._child
         if child is None:
-            raise FMUCrashError(self.name, op, None, self._lost or "the FMU process is not running")
+            raise FMUCrashError(self.name, op, None, "the FMU process is not running")
         try:
             child.conn.send((op, *args))
             if not child.conn.poll(self.call_timeout if timeout is None else timeout):
@@ -162,11 +170,14 @@ class IsolatedFMUModule(FMUModuleBase):
             raise self._crashed(op, exc) from None
         if reply[0] == "ok":
             return reply[1]
-        _, kind, call, message, dead = reply
-        if dead:  # fmiFatal: this process's FMU is corrupted; a new one takes over from the last good state
+        _, kind, call, message, lost, port = reply
+        if lost:  # fatal, or failed without a way back: a new process takes over from the last good state
             self._drop_child()
+            message += self._next_start()
         if call is None:
             raise FMUError(message) if kind == "FMUError" else DynabrainError(message)
+        if kind == "NonFiniteOutputError":
+            raise NonFiniteOutputError(self.name, call, None, message, port)
         cls = getattr(fmu_errors, kind, fmu_errors.FMUCallError)
         raise cls(self.name, call, None, message)
 
@@ -174,7 +185,7 @@ class IsolatedFMUModule(FMUModuleBase):
         call, how = self._lose_child("died")
         during = f"during {call}" if call else "between two calls"
         return FMUCrashError(self.name, call or op, None, f"the isolated FMU process died {during} ({op}): {how}; "
-                             f"{self.info.label}")
+                             f"{self.info.label}{self._next_start()}")
 
     def _hung(self, op: str, timeout: float) -> FMUTimeoutError:
         """The child did not answer in time: kill it; the next step starts a new one from the last good
@@ -183,20 +194,24 @@ class IsolatedFMUModule(FMUModuleBase):
         call, how = self._lose_child(f"was killed (no answer within {timeout:g} s)")
         return FMUTimeoutError(self.name, call or op, None, f"the isolated FMU did not answer within "
                                f"{timeout:g} s ({'in ' + call if call else op}); its process was "
-                               f"killed ({how}); {self.info.label}")
+                               f"killed ({how}); {self.info.label}{self._next_start()}")
+
+    def _next_start(self) -> str:
+        """What the next step does, for the error of a step that lost the process."""
+        if self._pending is not None:
+            return "; the next step restarts it from the last good state"
+        return (f"; its state is lost ({self.info.label} cannot serialize it): the next step restarts it from "
+                "scratch")
 
     def _lose_child(self, what: str) -> tuple[str, str]:
         """Forget a dead child: (the FMI call it was in, how it ended). The next step starts a new one
-        from the last good state, or says why it cannot."""
+        from the last good state, or from scratch when there is none."""
         child = self._child
         call = child.call_in_progress()
         how = child.death()
         self._child = None
         child.cleanup()
         self._pending = self._state
-        if self._state is None:
-            self._lost = (f"the FMU process {what} earlier ({how}) and {self.info.label} cannot serialize its "
-                          "state, so it cannot be brought back")
         return call, how
 
     def _drop_child(self) -> None:
@@ -205,12 +220,19 @@ class IsolatedFMUModule(FMUModuleBase):
             child.kill()
         self._pending = self._state
 
-    def _revive(self) -> None:
-        """A fresh process at the state of the last good tick."""
-        if self._lost is not None or self._pending is None:
-            raise FMUCrashError(self.name, "restart", None, self._lost or "the FMU process is gone and there is "
-                                "no state to restart it from")
+    def _revive(self, t_ns: int) -> None:
+        """A fresh process at the state of the last good tick, or from scratch at ``t_ns`` when the FMU
+        has no state to come back to (it cannot serialize it)."""
         self._spawn()
+        if self._pending is None:
+            outputs, state = self._request("init", t_ns, dict(self.params), self._inputs_now())
+            self._write_outputs(outputs)
+            self._state = self._as_state(state)
+            note = (f"module {self.name!r}: {self.info.label} was restarted from scratch at t={t_ns / 1e9:g} s "
+                    f"(world time): its state before was lost (it cannot serialize it)")
+            self.restarts.append(note)
+            _log.warning("%s", note)
+            return
         self._request("init", self._t0_ns, dict(self.params), self._inputs_now())
         self._request("set_state", self._pending.token, self._pending.data)
         self._state, self._pending = self._pending, None
@@ -245,7 +267,7 @@ class IsolatedFMUModule(FMUModuleBase):
 
     def step(self, t_ns: int, dt_ns: int) -> None:
         if self._child is None:
-            self._revive()
+            self._revive(t_ns)
         outputs, state = self._request("step", t_ns, dt_ns, self._inputs_now())
         self._write_outputs(outputs)
         self._state = self._as_state(state)
@@ -265,8 +287,11 @@ class IsolatedFMUModule(FMUModuleBase):
             return
         try:
             self._request("set_state", state.token, state.data)
-        except FMUCrashError:
+        except DynabrainError as exc:  # the world is rolling back: never leave it half done
+            if self._child is not None:
+                self._drop_child()
             self._pending = state  # restored when the next step starts a new process
+            _log.warning("module %r: restoring the FMU's state failed (%s); the next step restarts it", self.name, exc)
 
     def on_param(self, name: str, value: Any) -> None:
         if self._child is None or not self._started:
@@ -297,7 +322,7 @@ class IsolatedFMUModule(FMUModuleBase):
     def __deepcopy__(self, memo: dict[int, Any]) -> IsolatedFMUModule:
         """A fork: a new process, initialized and set to this module's state."""
         clone = IsolatedFMUModule(self.name, self.info, source=self.source, targets=self.targets,
-                                  call_timeout=self.call_timeout)
+                                  call_timeout=self.call_timeout, start_time=self.start_time)
         clone._param_values = self._param_values
         clone._t0_ns, clone._started = self._t0_ns, self._started
         memo[id(self)] = clone

@@ -9,29 +9,67 @@ initializes at the joining tick and writes the initial outputs; ``step`` is one 
 module's period, inputs read from and outputs written into the bus in place, the FMU state saved
 for history in the same crossing into C; ``close`` terminates and frees (also after any failure).
 A step the FMU discards or fails raises `FMUDiscardError` / `FMUCallError`; the world rolls back to
-the last good tick and reports module, call and tick.
+the last good tick (restoring the FMU's state) and reports module, call and tick. An FMU that cannot
+restore its state (``canGetAndSetFMUstate`` false), or that reported a fatal error, cannot be used
+after such a failure (the FMI standard allows only to reset or free it): every later step raises
+`FMUUnusableError` naming it. One that asks to end the simulation raises `FMUTerminatedError`.
+
+Time: the FMU's time is the world's plus its start time (``DefaultExperiment.startTime``, or
+``start_time`` given to the module), so an FMU joining a world at t=0 starts where its description
+says and its outputs line up with a simulation of it alone (FMPy's) row for row.
 """
 
 from __future__ import annotations
 
 import ctypes
+import logging
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.module import Capabilities, Module, Param, Port, SetupContext
+from .errors import FMUCallError, FMUError
 from .info import DIMENSIONS, FmuInfo, Signal
 from .session import Session
 from .states import FMUState, SerializedFMUState
 
+_log = logging.getLogger("dynabrain.fmu")
+_LISTED: set[str] = set()  # FMUs whose variables not on the bus were listed (once per process)
+
+
+class BinaryParam(Param):
+    """An FMI 3.0 Binary parameter: bytes, or text of hex digits (``"00ff"``)."""
+
+    def convert(self, value: Any) -> Any:
+        if isinstance(value, (bytes, bytearray)):
+            return bytes(value)
+        if isinstance(value, str):
+            try:
+                return bytes.fromhex(value)
+            except ValueError:
+                raise UnitError(f"expected bytes or hex digits, got {value!r}") from None
+        raise UnitError(f"expected bytes or hex digits, got {value!r}")
+
 
 def make_param(sig: Signal) -> Param:
     """A module parameter for an FMU parameter (vectors become lists)."""
-    cast = {"real": float, "integer": int, "boolean": bool}[sig.type]
+    if sig.type == "binary":
+        return BinaryParam(sig.name, sig.start[0], runtime=sig.tunable, doc=sig.description)
+    if sig.type == "string":
+        return Param(sig.name, sig.start[0], runtime=sig.tunable, doc=sig.description)
+    cast = float if sig.type in ("real", "float32") else bool if sig.type == "boolean" else int
     default: Any = cast(sig.start[0]) if not sig.shape else tuple(cast(v) for v in sig.start)
-    dimension = DIMENSIONS.get(sig.unit) if sig.type == "real" else None
+    dimension = DIMENSIONS.get(sig.unit) if sig.type in ("real", "float32") else None
     return Param(sig.name, default, unit=sig.unit, runtime=sig.tunable, doc=sig.description, dimension=dimension)
+
+
+def list_not_on_bus(info: FmuInfo) -> None:
+    """Say once (per FMU, per process) which of its variables are not on the bus."""
+    if info.skipped and info.path not in _LISTED:
+        _LISTED.add(info.path)
+        _log.warning("%s: not on the bus: %s", info.label, ", ".join(info.skipped))
 
 
 def make_ports(signals: Sequence[Signal]) -> tuple[Port, ...]:
@@ -58,9 +96,13 @@ class FMUModuleBase(Module):
     """Ports, parameters and capabilities of an FMU (shared by the in-process and isolated modules)."""
 
     def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (),
-                 **params: Any):
+                 start_time: float | None = None, **params: Any):
         self.info = info
         self.source = source or info.path
+        self.start_time = info.start_time if start_time is None else float(start_time)
+        """The FMU's time at world time 0 (its time is the world's plus this)."""
+        if not np.isfinite(self.start_time):
+            raise DynabrainError(f"module {name!r}: start_time must be a finite number of seconds, got {start_time!r}")
         self._specs = {s.name: make_param(s) for s in info.params}
         self._inputs = make_ports(info.inputs)
         self._outputs = make_ports(info.outputs)
@@ -70,7 +112,10 @@ class FMUModuleBase(Module):
 
     @staticmethod
     def capabilities(info: FmuInfo) -> Capabilities:
-        return Capabilities(can_rollback=info.can_get_set, can_fork=info.can_serialize, feedthrough=info.feedthrough)
+        # finite_outputs: the session checks the outputs as it reads them (in C on the fast path), raising
+        # NonFiniteOutputError itself, so the world need not check them again
+        return Capabilities(can_rollback=info.can_get_set, can_fork=info.can_serialize, feedthrough=info.feedthrough,
+                            finite_outputs=False)
 
     def param_specs(self) -> dict[str, Param]:  # type: ignore[override]  # per instance: the FMU's parameters
         return self._specs
@@ -105,7 +150,7 @@ class FMUModuleBase(Module):
         info = self.info
         out["fmu"] = {"source": self.source, "file": info.path, "fmi": f"{info.version}.0", "model": info.model_name,
                       "can_get_set_state": info.can_get_set, "can_serialize_state": info.can_serialize,
-                      "not_exposed": list(info.skipped)}
+                      "start_time": self.start_time, "not_exposed": list(info.skipped)}
         return out
 
     def scenario_spec(self) -> dict[str, Any]:
@@ -136,8 +181,9 @@ def _pieces(views: list[np.ndarray]) -> list[tuple[np.ndarray, slice]]:
 class FMUModule(FMUModuleBase):
     """An FMU stepped in the world's process. See the module docstring."""
 
-    def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (), **params: Any):
-        super().__init__(name, info, source=source, targets=targets, **params)
+    def __init__(self, name: str, info: FmuInfo, *, source: str = "", targets: Sequence[str] = (),
+                 start_time: float | None = None, **params: Any):
+        super().__init__(name, info, source=source, targets=targets, start_time=start_time, **params)
         self._session: Session | None = None
         self._state: FMUState | SerializedFMUState | None = None
         self._dt_ns = 0
@@ -155,7 +201,8 @@ class FMUModule(FMUModuleBase):
     # -- lifecycle -------------------------------------------------------------------------------------
     def setup(self, ctx: SetupContext) -> None:
         self._dt_ns = ctx.period_ns
-        self._session = Session(self.info, self.name, rollback=self.CAPABILITIES.can_rollback)
+        self._session = Session(self.info, self.name, rollback=self.CAPABILITIES.can_rollback,
+                                start_time=self.start_time)
         self._pool = self._session.pool
         self.bind()
 
@@ -187,7 +234,7 @@ class FMUModule(FMUModuleBase):
             slot = free.pop() if free else pool.take()
             rc = self._fn(self._arg, t_ns, pool.base + 8 * slot)
             if rc:
-                self._failed(rc, slot)
+                self._failed(rc, slot, t_ns)
             self._state = FMUState(pool, slot)
             return
         session = self._require("step")
@@ -200,13 +247,13 @@ class FMUModule(FMUModuleBase):
         if self._scatter:
             self._copy_out()
 
-    def _failed(self, rc: int, slot: int) -> None:
+    def _failed(self, rc: int, slot: int, t_ns: int) -> None:
         session = self._session
         try:
-            session.failed(rc, slot)
+            session.failed(rc, slot, t_ns)
         finally:
-            if session.api.dead:
-                self._simple = False  # the general path refuses to call a dead instance
+            if session.api.dead or session.unusable is not None:
+                self._simple = False  # the general path refuses to call an instance that failed for good
 
     def _copy_in(self) -> None:
         values = self._session.in_values
@@ -220,8 +267,6 @@ class FMUModule(FMUModuleBase):
 
     def _require(self, call: str) -> Session:
         if self._session is None:
-            from .errors import FMUError
-
             raise FMUError(f"module {self.name!r}: {call}() before setup (or after close)")
         return self._session
 
@@ -234,17 +279,25 @@ class FMUModule(FMUModuleBase):
 
     def set_state(self, state: Any) -> None:
         session = self._require("set_state")
-        if session.api is not None and session.api.dead:
+        if session.api is None or session.api.dead:
             self._state = state  # nothing can be restored into a dead instance; the next step says so
             return
-        if state is self._state and isinstance(state, FMUState):
-            session.pool.restore(state)
-            return
-        self._state = session.restore(state)
+        try:
+            if state is self._state and isinstance(state, FMUState):
+                session.pool.restore(state)
+                session.unusable = None
+                return
+            self._state = session.restore(state)
+        except (FMUError, FMUCallError) as exc:  # the world is rolling back: never leave it half done
+            self._state = state
+            self._simple = False
+            session.unusable = (f"{self.info.label}: restoring its state failed ({exc}); the FMI standard allows "
+                                "only to reset or free it now. Remove the module or load the world again")
+            _log.warning("module %r: %s", self.name, session.unusable)
 
     def on_param(self, name: str, value: Any) -> None:
         session = self._session
-        if session is None or not session.initialized:
+        if session is None or not session.initialized or session.unusable is not None or session.api.dead:
             return
         if self._specs[name].runtime:
             session.set_params({name: value})
@@ -263,16 +316,19 @@ class FMUModule(FMUModuleBase):
 
     def __deepcopy__(self, memo: dict[int, Any]) -> FMUModule:
         """A fork: a new instance of the FMU in the same state (through its serialized state)."""
-        clone = FMUModule(self.name, self.info, source=self.source, targets=self.targets)
+        clone = FMUModule(self.name, self.info, source=self.source, targets=self.targets, start_time=self.start_time)
         clone._param_values = self._param_values
         memo[id(self)] = clone
         if self._session is None:
             return clone
         state = self._session.serialize(self.get_state())
-        clone._session = Session(self.info, self.name, rollback=clone.CAPABILITIES.can_rollback)
+        clone._session = Session(self.info, self.name, rollback=clone.CAPABILITIES.can_rollback,
+                                 start_time=self.start_time)
         clone._pool = clone._session.pool
         clone._t0, clone._dt_ns = self._t0, self._dt_ns
         try:
+            self._copy_in()
+            clone._session.in_values[:] = self._session.in_values  # valid inputs (an enumeration takes no 0)
             clone._session.initialize(self._t0, dict(self.params))
             clone._state = clone._session.restore(state)
         except BaseException:

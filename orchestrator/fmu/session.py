@@ -2,8 +2,16 @@
 
 `FMUModule` drives a session in the world's process; the isolation worker drives one in a child
 process. A session exchanges values through two flat float64 arrays bound with `bind`: every input
-and every output in port order (reals first, then integers, then booleans, as `info` orders them).
-The reals go to and from the FMU in one call each; integers and booleans are converted around it.
+and every output in port order (reals first, then each other kind in `info.BUS_KINDS` order). The
+reals go to and from the FMU in one call each; every other kind is converted around it, exactly: an
+input that does not fit its type (300 for an Int8, 2.5e9 for an Int32, beyond 2^53 for a 64-bit
+integer, NaN for an integer) and a 64-bit output beyond 2^53 fail the step naming the variable.
+
+Failures follow the FMI standard. A step that fails (``Discard``, ``Error``, ``Fatal``, a terminate
+request) leaves the instance in a state only a restored FMU state can undo: a session without one
+(the FMU cannot get and set its state) becomes *unusable* (``unusable`` says why), and so does one
+after a fatal error; every later step raises `FMUUnusableError`, and `close` frees it without
+calling ``Terminate``.
 """
 
 from __future__ import annotations
@@ -18,47 +26,62 @@ from typing import Any
 
 import numpy as np
 
+from ..kernel.errors import ModuleError, NonFiniteOutputError
 from .api import FmuApi, make_api
-from .errors import FMUCallError, FMUError
-from .fastpath import CALLS, EARLY_RETURN, TERMINATE, Stepper, decode
-from .info import FmuInfo, Signal
+from .errors import FMUCallError, FMUError, FMUTerminatedError, FMUUnusableError
+from .fastpath import CALLS, EARLY_RETURN, NONFINITE, TERMINATE, Stepper, decode
+from .info import BUS_KINDS, EXACT, INT_RANGES, FmuInfo, Signal
 from .states import FMUState, SerializedFMUState, StatePool
+
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+_WHAT_NOW = ("Remove the module (world.remove_module) or load the world again; with isolate: true it is restarted "
+             "from scratch")
+_FMI_TYPE = {"real": "Float64", "float32": "Float32", "int8": "Int8", "uint8": "UInt8", "int16": "Int16",
+             "uint16": "UInt16", "integer": "Int32", "uint32": "UInt32", "int64": "Int64", "uint64": "UInt64",
+             "boolean": "Boolean"}
 
 
 @dataclass(frozen=True)
 class _Typed:
-    """Integer or boolean signals of one direction: their value references, their place in the
-    flat array, and the FMU-typed buffer they go through."""
+    """Variables of one kind other than real, in one direction: their value references, their place
+    in the flat array, the FMU-typed buffer they go through, and each value's variable name."""
 
     kind: str
     vrs: np.ndarray
     start: int
     stop: int
     buf: np.ndarray
+    names: tuple[str, ...]
 
 
 def _vrs(signals: list[Signal]) -> np.ndarray:
     return np.array([vr for s in signals for vr in s.vrs], dtype=np.uint32)
 
 
+def _names(signals: list[Signal]) -> tuple[str, ...]:
+    return tuple(s.name if not s.shape else f"{s.name}[{i + 1}]" for s in signals for i in range(s.size))
+
+
 def _typed(api: FmuApi, signals: tuple[Signal, ...]) -> tuple[int, list[_Typed]]:
-    """(number of real values, the integer and boolean groups after them)."""
+    """(number of real values, the groups of other kinds after them)."""
     n_real = sum(s.size for s in signals if s.type == "real")
     groups, at = [], n_real
-    for kind in ("integer", "boolean"):
+    for kind in BUS_KINDS[1:]:
         sigs = [s for s in signals if s.type == kind]
         n = sum(s.size for s in sigs)
         if n:
-            groups.append(_Typed(kind, _vrs(sigs), at, at + n, np.zeros(n, dtype=api.DTYPES[kind])))
+            groups.append(_Typed(kind, _vrs(sigs), at, at + n, np.zeros(n, dtype=api.DTYPES[kind]), _names(sigs)))
         at += n
     return n_real, groups
 
 
 class Session:
     """A loaded and instantiated FMU. ``rollback``: keep states (a `StatePool`) for history;
-    ``folder``: where to extract the FMU (default: a temporary folder removed at `close`)."""
+    ``folder``: where to extract the FMU (default: a temporary folder removed at `close`);
+    ``start_time``: the FMU's time at world time 0 (its time is the world's plus this)."""
 
-    def __init__(self, info: FmuInfo, name: str, *, rollback: bool, folder: str | None = None):
+    def __init__(self, info: FmuInfo, name: str, *, rollback: bool, folder: str | None = None,
+                 start_time: float = 0.0):
         self.info, self.name = info, name
         if folder is not None:  # a folder its owner removes (isolation: even when this process dies)
             os.makedirs(folder, exist_ok=True)
@@ -66,6 +89,8 @@ class Session:
         self._remove_dir = weakref.finalize(self, shutil.rmtree, self.dir, True)  # also if never closed
         self.api: FmuApi | None = None
         self.initialized = False
+        self.unusable: str | None = None
+        """Why the instance cannot be used any more (None while it can)."""
         try:
             _extract(info, self.dir)
             self.api = make_api(info, self.dir, name)
@@ -81,9 +106,14 @@ class Session:
         real_in = [s for s in info.inputs if s.type == "real"]
         real_out = [s for s in info.outputs if s.type == "real"]
         self.stepper = Stepper(api, _vrs(real_in), self.n_in, _vrs(real_out), self.n_out, no_prior=not rollback)
+        self.stepper.set_start_time(start_time)
         self.pool = StatePool(api) if rollback and info.can_get_set else None
         self.params = {s.name: s for s in info.params}
         self.bind(np.zeros(self.n_in_all), np.zeros(self.n_out_all))
+
+    @property
+    def start_time(self) -> float:
+        return self.stepper.t0
 
     # -- values --------------------------------------------------------------------------------------
     def bind(self, in_values: np.ndarray, out_values: np.ndarray) -> None:
@@ -95,13 +125,55 @@ class Session:
     def write_typed_inputs(self) -> None:
         for g in self.in_typed:
             values = self.in_values[g.start:g.stop]
-            g.buf[...] = values != 0 if g.kind == "boolean" else np.rint(values)
-            self.api.set_values(g.kind, g.vrs, g.buf)
+            if g.kind == "boolean":
+                g.buf[...] = values != 0
+            elif g.kind == "float32":
+                if not np.all(np.abs(values) <= FLOAT32_MAX):
+                    self._refuse_input(g, ~(np.abs(values) <= FLOAT32_MAX), "is beyond the range of a Float32")
+                g.buf[...] = values
+            else:
+                whole = np.rint(values)
+                low, high = INT_RANGES[g.kind]
+                fits = (whole >= max(low, -EXACT)) & (whole <= min(high, EXACT))
+                if not fits.all():
+                    self._refuse_input(g, ~fits, f"does not fit {_FMI_TYPE[g.kind]} ({max(low, -EXACT)} to "
+                                       f"{min(high, EXACT)})")
+                g.buf[...] = whole
+            try:
+                self.api.set_values(g.kind, g.vrs, g.buf)
+            except FMUCallError as exc:  # the FMU's own status (a refused value above is not the FMU's)
+                self._failed_call(exc, 3)
+                raise
+
+    def _refuse_input(self, g: _Typed, bad: np.ndarray, why: str) -> None:
+        k = int(np.flatnonzero(bad)[0])
+        value = float(self.in_values[g.start + k])
+        raise FMUCallError(self.name, f"fmi{self.info.version}Set{_FMI_TYPE[g.kind]}", None,
+                           f"input {g.names[k]} = {value:g} {why}; {self.info.label}")
 
     def read_typed_outputs(self) -> None:
         for g in self.out_typed:
             self.api.get_values(g.kind, g.vrs, g.buf)
+            if g.kind in ("int64", "uint64") and np.any(np.abs(g.buf.astype(np.float64)) > EXACT):
+                k = int(np.flatnonzero(np.abs(g.buf.astype(np.float64)) > EXACT)[0])
+                raise FMUCallError(self.name, f"fmi3Get{_FMI_TYPE[g.kind]}", None,
+                                   f"output {g.names[k]} = {int(g.buf[k])} is beyond 2^53: the bus (float64) holds "
+                                   f"it only rounded; {self.info.label}")
+            if g.kind == "float32" and not np.isfinite(g.buf).all():
+                self.nonfinite(g.buf, [s for s in self.info.outputs if s.type == "float32"])
             self.out_values[g.start:g.stop] = g.buf
+
+    def nonfinite(self, values: np.ndarray, signals: list[Signal]) -> None:
+        """Raise `NonFiniteOutputError` for the first value that is not finite (``values``: the outputs
+        of ``signals``, in order). The session checks the outputs it reads, so the world need not
+        (`FMUModule` declares ``finite_outputs=False``)."""
+        names = _names(signals)
+        k = int(np.flatnonzero(~np.isfinite(values))[0])
+        value = float(values[k])
+        port = next(s.name for s in signals if names[k] == s.name or names[k].startswith(f"{s.name}["))
+        where = f" (element {names[k]})" if names[k] != port else ""
+        raise NonFiniteOutputError(self.name, "step", None, f"output {port!r} is {'NaN' if np.isnan(value) else value}"
+                                   f"{where}; outputs must be finite numbers ({self.info.label})", port=port)
 
     def read_outputs(self) -> None:
         self.api.get_values("real", self.stepper.out_vrs, self.out_values[:self.n_out])
@@ -114,22 +186,30 @@ class Session:
     def set_params(self, values: dict[str, Any]) -> None:
         """Set parameters by name (one call per type)."""
         api = self.api
-        for kind in ("real", "integer", "boolean"):
+        for kind in (*BUS_KINDS, "string", "binary"):
             vrs, vals = [], []
             for name, value in values.items():
                 sig = self.params[name]
                 if sig.type == kind:
                     vrs += sig.vrs
-                    vals += list(np.ravel(np.asarray(value)))
-            if vrs:
-                api.set_values(kind, np.array(vrs, dtype=np.uint32), np.array(vals, dtype=api.DTYPES[kind]))
+                    vals += [value] if kind in ("string", "binary") else list(np.ravel(np.asarray(value)))
+            if not vrs:
+                continue
+            refs = np.array(vrs, dtype=np.uint32)
+            if kind == "string":
+                api.set_strings(refs, [str(v) for v in vals])
+            elif kind == "binary":
+                api.set_binaries(refs, [bytes(v) for v in vals])
+            else:
+                api.set_values(kind, refs, np.array(vals, dtype=api.DTYPES[kind]))
 
     # -- lifecycle -----------------------------------------------------------------------------------
     def initialize(self, t0: float, params: dict[str, Any]) -> None:
-        """Parameters, then initialization mode at ``t0`` with the current inputs; outputs read."""
+        """Parameters, then initialization mode at ``t0`` (the world's time, in seconds: the FMU's is
+        ``t0 + start_time``) with the current inputs; outputs read."""
         api = self.api
         self.set_params(params)
-        api.enter_init(t0)
+        api.enter_init(t0 + self.start_time)
         self.write_inputs()
         api.exit_init()
         self.initialized = True
@@ -139,13 +219,13 @@ class Session:
         """Reset and initialize again (a fixed parameter changed before the world ran)."""
         self.api.reset()
         self.initialized = False
+        self.unusable = None
         self.initialize(t0, params)
 
     def step(self, t_ns: int, dt_ns: int, save: bool) -> FMUState | None:
         """One step from ``t_ns`` (the fast path is inlined in `FMUModule.step`; this is the general one)."""
         stepper = self.stepper
-        if self.api.dead:
-            self.api.enter(CALLS[self.api.version][2])  # raises: no call after a fatal status
+        self.require_usable(CALLS[self.api.version][2])
         if dt_ns != stepper.dt_ns:
             stepper.set_step(dt_ns)
         if self.in_typed:
@@ -154,26 +234,74 @@ class Session:
         slot = pool.take() if pool is not None else -1
         rc = stepper.fn(stepper.arg, t_ns, pool.address(slot) if pool is not None else 0)
         if rc:
-            self.failed(rc, slot)
+            self.failed(rc, slot, t_ns)
         if self.out_typed:
-            self.read_typed_outputs()
+            try:
+                self.read_typed_outputs()
+            except ModuleError as exc:
+                if slot >= 0 and pool is not None:
+                    pool.free.append(slot)
+                self._failed_call(exc, 3)
+                raise
         return FMUState(pool, slot) if pool is not None else None
 
-    def failed(self, rc: int, slot: int = -1) -> None:
+    def require_usable(self, call: str) -> None:
+        """Refuse a call on an instance that failed for good (see the module docstring)."""
+        if self.unusable is None and self.api is not None and self.api.dead:
+            self.unusable = (f"{self.info.label} reported a fatal error earlier; no call is allowed on it but freeing "
+                             f"it. {_WHAT_NOW}")
+        if self.unusable is not None:
+            raise FMUUnusableError(self.name, call, None, self.unusable)
+
+    def failed(self, rc: int, slot: int = -1, t_ns: int | None = None) -> None:
         """Handle a non-zero step result: log a warning, or give the slot back and raise."""
-        call, status = decode(self.api.version, rc)
+        api = self.api
+        call, status = decode(api.version, rc)
         if status == 1:
-            self.api.check(call, 1)
+            api.check(call, 1)
             return
         if slot >= 0 and self.pool is not None:
             self.pool.free.append(slot)
-        if status == TERMINATE:
-            raise FMUCallError(self.name, call, None, f"{self.info.label} asked to end the simulation "
-                               "(terminateSimulation)")
-        if status == EARLY_RETURN:
-            raise FMUCallError(self.name, call, None, f"{self.info.label} returned early from a step it was not "
-                               "allowed to cut short")
-        self.api.check(call, status)
+        at = f" in its step from t={t_ns / 1e9 + self.start_time:g} s" if t_ns is not None else ""
+        try:
+            if status == TERMINATE or (status == 2 and call == "fmi2DoStep" and api.terminated()):
+                said = api.sink.take()
+                raise FMUTerminatedError(self.name, call, None, f"{self.info.label} asked to end the simulation{at}"
+                                         + (" (" + " | ".join(said) + ")" if said else ""))
+            if status == NONFINITE:
+                self.nonfinite(self.out_values[:self.n_out], [s for s in self.info.outputs if s.type == "real"])
+            if status == EARLY_RETURN:
+                raise FMUCallError(self.name, call, None, f"{self.info.label} returned early from a step it was not "
+                                   "allowed to cut short")
+            api.check(call, status)
+            raise FMUCallError(self.name, call, None, f"{self.info.label}: status {status}")  # pragma: no cover
+        except ModuleError as exc:
+            self._failed_call(exc, status)
+            raise
+
+    def _failed_call(self, exc: ModuleError, status: int) -> None:
+        """After a failed call: an instance that cannot be restored (or is dead) is unusable from now
+        on; the error says so."""
+        if self.unusable is not None or (status < 2 and not isinstance(exc, FMUTerminatedError)):
+            return
+        dead = self.api.dead
+        if self.pool is not None and not dead:
+            return  # the world restores a state from before, which the FMI standard allows
+        if dead:
+            why = "it reported a fatal error"
+            self.unusable = (f"{self.info.label} reported a fatal error earlier ({exc.call}: {exc.cause}); no call is "
+                             f"allowed on it but freeing it. {_WHAT_NOW}")
+        else:
+            why = f"it cannot restore a state from before ({self.lost_state_reason()})"
+            self.unusable = (f"{self.info.label} failed earlier ({exc.call}: {exc.cause}) and {why}: the FMI "
+                             f"standard allows only to reset or free it. {_WHAT_NOW}")
+        exc.cause = f"{exc.cause}; {why}, so it cannot be used any more"  # the world makes its error from this
+        exc.args = (f"{exc.args[0]}; {why}, so it cannot be used any more",)
+
+    def lost_state_reason(self) -> str:
+        if not self.info.can_get_set:
+            return "canGetAndSetFMUstate is false"
+        return "its state is not kept here (no rollback)"
 
     # -- states --------------------------------------------------------------------------------------
     def capture(self) -> FMUState:
@@ -193,6 +321,7 @@ class Session:
         if not isinstance(state, FMUState):
             raise FMUError(f"{self.info.label}: {state!r} is not an FMU state")
         pool.restore(state)
+        self.unusable = None  # restored to a state from before the failure (FMI: allowed after an error)
         return state
 
     def serialize(self, state: FMUState) -> SerializedFMUState:
@@ -201,12 +330,12 @@ class Session:
         return state.pool.serialize(state.slot)
 
     def close(self) -> None:
-        """Terminate, free every state and the instance, unload, delete the extracted files. Safe to
-        call more than once and after any failure."""
+        """Terminate (unless the instance failed for good), free every state and the instance, unload,
+        delete the extracted files. Safe to call more than once and after any failure."""
         api, self.api = self.api, None
         try:
             if api is not None:
-                if self.initialized and api.instance is not None and not api.dead:
+                if self.initialized and api.instance is not None and not api.dead and self.unusable is None:
                     with contextlib.suppress(Exception):
                         api.terminate()
                 if getattr(self, "pool", None) is not None:

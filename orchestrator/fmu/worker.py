@@ -3,9 +3,11 @@
     python -m dynabrain.orchestrator.fmu.worker FD TRACE_FILE
 
 Requests come over the connection on file descriptor FD as tuples ``(op, *args)``; each gets
-``("ok", value)`` or ``("error", class name, FMI call, message, dead)``. Before each FMI call the
-worker writes the call's name into TRACE_FILE (shared memory), so when the FMU kills the process the
-parent can say which call did it. States cross as serialized bytes: they outlive this process.
+``("ok", value)`` or ``("error", class name, FMI call, message, lost, port)``; ``lost``: the instance cannot
+be used any more (a fatal error, or a failure it cannot restore a state from before; see `session`);
+``port``: the output a `NonFiniteOutputError` names.
+Before each FMI call the worker writes the call's name into TRACE_FILE (shared memory), so when the
+FMU kills the process the parent can say which call did it. States cross as serialized bytes: they outlive this process.
 """
 
 from __future__ import annotations
@@ -37,9 +39,9 @@ class Worker:
         self.trace[:TRACE_SIZE] = call.encode()[:TRACE_SIZE].ljust(TRACE_SIZE, b"\0")
 
     # -- requests ------------------------------------------------------------------------------------
-    def open(self, info: FmuInfo, name: str, rollback: bool, folder: str) -> tuple[int, int]:
+    def open(self, info: FmuInfo, name: str, rollback: bool, folder: str, start_time: float = 0.0) -> tuple[int, int]:
         self.mark("load")
-        self.session = s = Session(info, name, rollback=rollback, folder=folder)
+        self.session = s = Session(info, name, rollback=rollback, folder=folder, start_time=start_time)
         s.api.on_call = self.mark
         s.stepper.use_python(self.mark)
         s.bind(np.zeros(s.n_in_all), np.zeros(s.n_out_all))
@@ -95,12 +97,13 @@ def serve(conn: Connection, worker: Worker) -> None:
         try:
             conn.send(("ok", getattr(worker, op)(*args)))
         except ModuleError as exc:
-            dead = worker.session is not None and worker.session.api is not None and worker.session.api.dead
-            conn.send(("error", type(exc).__name__, exc.call, str(exc.cause), dead))
+            s = worker.session
+            lost = s is not None and (s.api is None or s.api.dead or s.unusable is not None)
+            conn.send(("error", type(exc).__name__, exc.call, str(exc.cause), lost, getattr(exc, "port", "")))
         except DynabrainError as exc:
-            conn.send(("error", type(exc).__name__, None, str(exc), False))
+            conn.send(("error", type(exc).__name__, None, str(exc), False, ""))
         except Exception as exc:
-            conn.send(("error", "FMUError", None, f"{type(exc).__name__}: {exc}", False))
+            conn.send(("error", "FMUError", None, f"{type(exc).__name__}: {exc}", False, ""))
         worker.mark("")
         if op == "close":
             break

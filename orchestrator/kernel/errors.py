@@ -68,6 +68,10 @@ class ModuleError(DynabrainError):
         detail = f"{type(cause).__name__}: {cause}" if isinstance(cause, BaseException) else str(cause)
         super().__init__(f"module {module!r}: {call}(){at} failed: {detail}")
 
+    def at_tick(self, tick: int) -> ModuleError:
+        """The same error, saying the tick it happened at (the world adds it to a module's error)."""
+        return type(self)(self.module, self.call, tick, self.cause)
+
 
 class PhysicsDivergedError(ModuleError):
     """The physics produced NaN or ran away; the tick was rolled back."""
@@ -80,6 +84,9 @@ class NonFiniteOutputError(ModuleError):
     def __init__(self, module: str, call: str, tick: int | None, cause: BaseException | str, port: str = ""):
         super().__init__(module, call, tick, cause)
         self.port = port
+
+    def at_tick(self, tick: int) -> NonFiniteOutputError:
+        return type(self)(self.module, self.call, tick, self.cause, self.port)
 
 
 class RollbackError(DynabrainError):

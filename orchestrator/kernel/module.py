@@ -171,11 +171,12 @@ class Capabilities:
     - ``feedthrough``: its outputs after a step depend on the inputs of that step. A module whose
       outputs depend on its state only (a physics core, an integrator) is not feedthrough; the
       schedule lets its consumers read its outputs before it steps, which breaks feedback loops.
-    - ``finite_outputs``: its outputs are always finite numbers. The world checks them after every
-      tick; one that holds NaN or an infinity fails the tick (rolled back, `NonFiniteOutputError`
-      naming module, port and tick). False for a module whose outputs mean something by NaN or an
-      infinity (a ZMP sensor with no foot on the ground, a meter before its first reading): its
-      outputs are not checked. A single module opts out with
+    - ``finite_outputs``: the world checks that its outputs are finite numbers after every tick; one
+      that holds NaN or an infinity fails the tick (rolled back, `NonFiniteOutputError` naming module,
+      port and tick). False for a module whose outputs mean something by NaN or an infinity (a ZMP
+      sensor with no foot on the ground, a meter before its first reading), or one that checks its
+      own and raises `NonFiniteOutputError` itself (an FMU, as it reads them): the world does not
+      look. A single module opts out with
       ``module.CAPABILITIES = dataclasses.replace(module.CAPABILITIES, finite_outputs=False)``.
     """
 

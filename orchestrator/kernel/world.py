@@ -224,7 +224,7 @@ class World:
         self._apply(self._history.top)
         self._dirty = False
         if isinstance(exc, ModuleError):
-            err = exc if exc.tick is not None else type(exc)(exc.module, exc.call, n, exc.cause)
+            err = exc if exc.tick is not None else exc.at_tick(n)
         elif where.startswith("event"):
             err = ModuleError(where, "apply", n, exc)
         else:

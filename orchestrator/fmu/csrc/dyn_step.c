@@ -1,10 +1,12 @@
 /* The adapter's step helper: one call from Python does what a co-simulation step needs of an FMU,
  * SetReal (inputs), DoStep, GetReal (outputs) and GetFMUState (the state history keeps), reading
- * and writing the master's buffers in place. The step starts at t_ns nanoseconds (passed as a
- * pointer-sized integer: ctypes converts those fastest) and lasts p->h seconds.
+ * and writing the master's buffers in place. The step starts at p->t0 + t_ns nanoseconds (t_ns passed
+ * as a pointer-sized integer: ctypes converts those fastest) and lasts p->h seconds.
  * It returns 0, or (call << 4 | status) for the first
  * call whose status is worse than Warning (or the first Warning when all passed):
- * call 1 set, 2 step, 3 get, 4 state; status 6 is FMI 3's terminateSimulation, 7 an early return. */
+ * call 1 set, 2 step, 3 get, 4 state; status 6 is FMI 3's terminateSimulation, 7 an early return,
+ * 8 an output that is NaN or infinite (the outputs are checked as they are read: the world need not). */
+#include <math.h>
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdint.h>
@@ -23,6 +25,7 @@ typedef struct {
     int fmi3;
     int no_prior;
     double h;
+    double t0; /* the FMU's time at t_ns = 0 (its start time) */
 } Plan;
 
 typedef int (*set2_t)(void *, const unsigned *, size_t, const double *);
@@ -42,7 +45,7 @@ typedef int (*state_t)(void *, void **);
 
 __attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, void **state) {
     int warn = 0;
-    double t = (double)(uintptr_t)t_ns / 1e9, h = p->h;
+    double t = p->t0 + (double)(uintptr_t)t_ns / 1e9, h = p->h;
     if (p->fmi3) {
         bool event = false, terminate = false, early = false;
         double last = 0.0;
@@ -56,6 +59,8 @@ __attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, v
         CHECK(2, ((step2_t)p->do_step)(p->instance, t, h, p->no_prior));
         if (p->n_out_vr) CHECK(3, ((get2_t)p->get_real)(p->instance, p->out_vr, p->n_out_vr, p->out));
     }
+    for (size_t i = 0; i < p->n_out; ++i)
+        if (!isfinite(p->out[i])) return (3 << 4) | 8;
     if (state) CHECK(4, ((state_t)p->get_state)(p->instance, state));
     return warn;
 }
