@@ -1,6 +1,7 @@
 """Property tests of rollback with each real physics core (MuJoCo and Exudyn): random sequences of
 tick, backtick, set (parameters, and the free bodies' wrench and velocity inputs), add, remove, make,
-make_joint and no_collision. Replaying from a rollback is
+make_joint (a weld, a hinge), no_collision, add_body and remove_body (the core's ports change) and a
+body's own friction and restitution. Replaying from a rollback is
 bit-identical, and so is a fresh world running the same sequence (Exudyn: velocity Verlet with one
 thread; see `dynabrain.modules.exudyn.system`). Every test runs with the generated tick and with the
 plain loop (`tick_runner` in conftest.py)."""
@@ -64,6 +65,9 @@ op = st.one_of(
     st.tuples(st.just("nocollide"), st.just(0)),
     st.tuples(st.just("push"), st.integers(0, len(PUSHES) - 1)),
     st.tuples(st.just("speed"), st.integers(0, len(SPEEDS) - 1)),
+    st.tuples(st.just("body"), st.just(0)),
+    st.tuples(st.just("material"), st.sampled_from([(0.2, None), (None, 0.7), (None, None)])),
+    st.tuples(st.just("hinge"), st.just(0)),
 )
 ops = st.lists(op, min_size=3, max_size=16)
 
@@ -96,6 +100,15 @@ def apply(world: World, action: tuple) -> None:
     elif kind == "speed":
         speed = SPEEDS[arg]
         world.set("core.c.velocity", [NAN] * 6 if speed is None else [*speed, NAN, NAN, 0.5])
+    elif kind == "body":  # a body comes and goes (the core's ports change)
+        if "d" in world.core.bodies():
+            world.remove_body("d")
+        else:
+            world.add_body(name="d", shape="sphere", size=["40mm"], pos=[0.6, 0, 0.3], mass="50g")
+    elif kind == "material":
+        world.set_material("b", friction=arg[0], restitution=arg[1])
+    elif kind == "hinge" and "h" not in _joints(world):
+        world.make_joint("a", "c", "h", kind="hinge", axis=[0, 1, 0])
 
 
 def _refusable(call, *args) -> None:

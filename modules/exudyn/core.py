@@ -24,7 +24,14 @@ and `exudyn.outputs` for the Exudyn system, `exudyn.contact` and `exudyn.calibra
   step)``, what an explicit step needs to stay stable when a box slides and spins on its corners;
   a wider zone calms impacts, a narrower one lets less creep on slopes);
 - a joint's range is a limit stop as stiff as the contacts; a weld (`make_joint`) merges the two
-  bodies into one rigid body, exactly; the joint ports, parameter names and queries are MuJoCo's;
+  bodies into one rigid body, exactly; a hinge, slider or ball made at run time is a stiff,
+  critically damped spring between the two carriers (`exudyn.joints`); the joint ports, parameter
+  names and queries are MuJoCo's;
+- bodies added or removed (`add_body`, `remove_body`) make another topology with other ports (a
+  `TopView` per `Edits.scene_key`, kept for the core's life; `bind` takes the one whose ports it is
+  bound to); a body's own friction is a friction material of its own, its own restitution the damping
+  of its contact spheres; changing their values changes parameters of the same system, giving a body
+  its first one builds the system again (carried over, like an edit);
 - the free bodies' inputs (`PhysicsCore`): a ``B.wrench`` becomes loads on the body's free carrier
   (its force on top of gravity's mass-proportional load, its torque, and the force's moment about the
   carrier's centre of mass, as a torque load), set again before a step only when they change; a

@@ -24,9 +24,23 @@ Choices (see also `mujoco.scene`):
   frame) at the start of the step, bodies welded to it (`make_joint`) moved with it as one rigid
   body, and the velocity-dependent half of the step is computed again (``mj_step1``, as after a
   parameter change). Neither is state (`STATE`): both come from the inputs, on the bus;
-- structural edits (`make`, `make_joint`, `no_collision`) recompile the model (`mujoco.scene`);
-  each compiled model (a `CompiledScene`) is cached by its edits, so a rollback across an edit costs
-  a dictionary look-up. The state is ``(edits, integration state array, sensor values)`` (see `STATE`);
+- structural edits (`make`, `make_joint`, `no_collision`, `add_body`, `remove_body`) recompile the
+  model (`mujoco.scene`); each compiled model (a `CompiledScene`) is cached by its edits, so a
+  rollback across an edit costs a dictionary look-up. The state is ``(edits, integration state
+  array, sensor values)`` (see `STATE`);
+- bodies added or removed change the ports: each set of bodies (`Edits.scene_key`) has its layout and
+  ports (a `SceneView`, compiled once from the model with those bodies and no other edit, kept for the
+  core's life), and `bind` takes the one whose ports it is bound to (a rollback binds the old ones);
+- joints made at run time: a weld is a weld equality, a ball a connect equality at the anchor, a hinge
+  two connects on its axis (10 cm apart), a slider a carriage body (a hundredth of the sliding body's
+  mass) on a slide joint in body a with body b welded to it; all at the welds' stiffness (solref
+  2 steps). MuJoCo computes a connect's second anchor from the model's reference pose, so the core
+  writes it after compiling;
+- a body's own friction and restitution (the scene's, an added body's, `set_material`'s) go to its
+  geoms with priority 1: a contact takes the coefficients of the geom of higher priority (MuJoCo's
+  rule), so they rule its contacts with bodies without; between two bodies with their own, MuJoCo's
+  mix (the larger friction, the mean contact stiffness and damping). They are model parameters,
+  applied without recompiling (`_apply_params`), like the core's;
 - a fork (`World.fork`, a deep copy) copies only the MuJoCo data of the current structure, into data a
   closed fork left when there is some; the compiled model is shared until either core changes a
   run-time parameter, which copies it first (`ModelShare`, `CompiledScene.own_model`);
