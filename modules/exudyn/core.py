@@ -222,13 +222,13 @@ class ExudynCore(EditedCore):
                 raise fail(self.name, f"bound to outputs of no body layout it has had ({len(names)} ports; it has "
                            f"{len(self._view.out_names)} now)")
             self._use_top(view)
-        self._attach()
+        self._attach(names)
 
-    def _attach(self) -> None:
+    def _attach(self, names: frozenset[str] | None = None) -> None:
         """Views on the bus when the binding holds the current topology's ports; otherwise (an edit that
         added or removed bodies, until the world binds the new ports) arrays of its own."""
         self._unbind()
-        if self.out and frozenset(self.out) != self._view.out_names:
+        if self.out and (frozenset(self.out) if names is None else names) != self._view.out_names:
             return
         for key in ("body_pos", "body_quat", "body_linvel", "body_angvel", "joint_q", "joint_qd"):
             if self.out.get(key) is not None:

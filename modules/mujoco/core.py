@@ -458,13 +458,13 @@ class MujocoCore(EditedCore):
                 raise DynabrainError(f"core {self.name!r}: bound to outputs of no body layout it has had "
                                      f"({len(names)} ports; it has {len(self._scene.out_names)} now)")
             self._use_scene(view)
-        self._attach()
+        self._attach(names)
 
-    def _attach(self) -> None:
+    def _attach(self, names: frozenset[str] | None = None) -> None:
         """Views on the bus when the binding holds the current layout's ports; otherwise (an edit that
         added or removed bodies, until the world binds the new ports) private buffers."""
         self._unbind()
-        if not self.out or frozenset(self.out) != self._scene.out_names:
+        if not self.out or (frozenset(self.out) if names is None else names) != self._scene.out_names:
             return
         if self.out_flat.size == self._own_out.size:  # bound to the bus: write there
             self._out_views(self.out_flat)
