@@ -267,3 +267,21 @@ def test_a_serial_batch_brings_modules_added_to_the_world(tmp_path):
                 batch.run(5, branches=2, record=["core.friction"])
     finally:
         world.close()
+
+
+def test_a_body_own_friction_is_a_parameter_a_batch_can_sweep():
+    world = load_world(SCENARIOS / "two_cubes.yaml")
+    try:
+        world.tick(100)
+        world.set("core.aa.velocity", [1.0, 0, 0, np.nan, np.nan, np.nan])
+        world.tick(1)
+        world.set("core.aa.velocity", [np.nan] * 6)
+        with Batch(world, backend="serial") as batch:
+            result = batch.run(200, branches=3, params={"core.aa.friction": [0.1, 0.5, None]}, record=["aa.pos"])
+            assert result.ok
+            slid = result.signals["aa.pos"][:, -1, 0]
+            assert slid[0] > slid[1]  # less friction, further
+            with pytest.raises(DynabrainError, match="finite number >= 0"):
+                batch.run(5, branches=2, params={"core.aa.friction": [0.1, -1.0]})
+    finally:
+        world.close()
