@@ -14,6 +14,13 @@ the others, then push it on.
     .venv/bin/python examples/blocks_planner.py               # plan with fast pushes, compare, execute
     .venv/bin/python examples/blocks_planner.py --careful     # only the careful planner
     .venv/bin/python examples/blocks_planner.py --log runs/blocks.mcap   # the run and the plan, in Foxglove
+
+    .venv/bin/dynabrain serve scenarios/blocks.yaml &                   # a world served over Zenoh
+    .venv/bin/python examples/blocks_planner.py --connect tcp/127.0.0.1:7447
+
+With ``--connect`` the plan found is also executed on the served world over the Zenoh bridge (the
+brain's inputs sent a tick at a time, as a remote brain drives its robot): it ends where the brain
+predicted, bit for bit, because it is the same simulation.
 """
 
 from __future__ import annotations
@@ -38,6 +45,8 @@ SPEEDS = {"slow": (0.4, 1.0), "fast": (2.5, 200.0)}
 """Top speed (m/s) and acceleration (m/s^2) of a push: a slow push speeds up gently (well under the
 friction that holds the blocks on it, 0.6 g), a fast one at once."""
 DIRECTIONS = {"left": (-1.0, 0.0), "right": (1.0, 0.0), "front": (0.0, -1.0), "back": (0.0, 1.0)}
+SETTLE = 50
+"""Ticks the stack settles before the brain plans."""
 RECORD = [f"core.{b}.{q}" for b in BLOCKS for q in ("pos", "quat")]
 """What the search records: positions for the heuristic; with the orientations, a kept plan shows in
 Foxglove as the blocks' predicted poses (``/imagined/blocks/0/tf``)."""
@@ -126,11 +135,33 @@ def describe(name: str, p: Plan) -> str:
             f"in {p.stats.batches} batches, {len(p.stats.failed)} children refused (a block fell, or the careful rule)")
 
 
+def execute_remote(p: Plan, connect: str, settle_ticks: int) -> dict[str, np.ndarray]:
+    """Run the plan on the world served at ``connect`` (the blocks scenario at t=0): settle as the brain
+    did, then each action's inputs a tick at a time; returns the blocks' final positions."""
+    from dynabrain.bridge import BrainClient
+
+    client = BrainClient("blocks", connect=connect)
+    try:
+        client.acquire()
+        if client.status()["tick"] != 0:
+            raise SystemExit("the served world has ticked already: serve scenarios/blocks.yaml afresh")
+        client.tick(settle_ticks)
+        for action in p.actions:
+            (name, values), = action.inputs.items()
+            for row in values:
+                client.set(name, row)
+                client.tick(1)
+        return {b: np.asarray(client.get(f"core.{b}.pos")) for b in BLOCKS}
+    finally:
+        client.close()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--careful", action="store_true", help="only the careful planner")
     ap.add_argument("--backend", default="auto", help="batch backend for the search (serial, processes, ...)")
     ap.add_argument("--log", type=Path, help="record the executed run and the plan to this MCAP file")
+    ap.add_argument("--connect", help="also execute the plan on the blocks world served at this Zenoh endpoint")
     opts = ap.parse_args()
     world = load_world(SCENARIO)
     try:
@@ -140,7 +171,7 @@ def main() -> None:
 
             opts.log.parent.mkdir(parents=True, exist_ok=True)
             logger = McapLogger(opts.log).attach(world)
-        world.tick(50)  # the stack settles
+        world.tick(SETTLE)  # the stack settles
         found = {}
         for name, careful in (("careful (one block at a time, slowly)", True),
                               ("with the simulator (slow and fast, any block)", False)):
@@ -165,6 +196,12 @@ def main() -> None:
         print(f"executed on the world in {time.perf_counter() - t0:.2f} s: outcome {verdict} the prediction bit "
               f"for bit; the base block ends at ({base[0]:+.3f}, {base[1]:+.3f}), "
               f"{np.linalg.norm(base[:2] - TARGET) * 100:.1f} cm from the target")
+        if opts.connect:
+            t0 = time.perf_counter()
+            remote = execute_remote(best, opts.connect, SETTLE)
+            same = all(remote[b].tobytes() == best.trajectory[f"core.{b}.pos"][-1].tobytes() for b in BLOCKS)
+            print(f"executed on the served world over Zenoh in {time.perf_counter() - t0:.2f} s: the blocks end "
+                  f"{'where predicted, bit for bit' if same else 'ELSEWHERE than predicted'}")
     finally:
         world.close()
 

@@ -44,3 +44,21 @@ def test_the_careful_rule_refuses_moving_a_block_with_blocks_on_it():
         assert all(not a.name.startswith(("base", "mid")) for a in plan.actions)
     finally:
         world.close()
+
+
+def test_the_plan_executed_over_the_bridge_ends_where_predicted():
+    """The plan sent a tick at a time to the blocks world served over Zenoh (loopback) ends bit for bit
+    where the brain predicted."""
+    from dynabrain.bridge.testing import ServerProcess
+
+    world = load_world(bp.SCENARIO)
+    try:
+        world.tick(bp.SETTLE)
+        plan = bp.plan(world, ("slow", "fast"), backend="serial", max_expansions=20)
+        assert plan.found
+        with ServerProcess(str(bp.SCENARIO)) as server:
+            remote = bp.execute_remote(plan, server.endpoint, bp.SETTLE)
+        for b in bp.BLOCKS:
+            assert remote[b].tobytes() == plan.trajectory[f"core.{b}.pos"][-1].tobytes()
+    finally:
+        world.close()
