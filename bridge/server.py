@@ -30,7 +30,7 @@ import threading
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
@@ -46,6 +46,9 @@ from .loop import Loop
 from .robot_link import RobotLink
 from .streams import EventSink, StateStream
 from .zenoh_io import FRAME, JSON, Settings, open_session, payload_bytes
+
+if TYPE_CHECKING:
+    from .ros2 import Ros2Bridge, Ros2Options
 
 _log = logging.getLogger("dynabrain.bridge")
 MAX_FORKS = 16
@@ -81,6 +84,8 @@ class ServeOptions:
     """Try a brain's run-time parameter change on a fork first, one tick, and refuse one that makes it fail."""
     tokenless_lease_s: float = p.TOKENLESS_LEASE_S
     """Most seconds of silence a hold lasts while its brain has no liveliness token."""
+    ros2: Ros2Options | None = None
+    """Also show the world to ROS 2 nodes on rmw_zenoh (`ros2`): joint states, /tf, /clock, joint commands."""
 
 
 @dataclass
@@ -135,6 +140,7 @@ class BridgeServer:
         self._entities: list[Any] = []
         self._fork_count = 0
         self._handlers = p.handlers(self, server=True)
+        self.ros2: Ros2Bridge | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------------------
     def open(self) -> list[str]:
@@ -165,6 +171,12 @@ class BridgeServer:
             link = RobotLink(s, name, rig, service, self.events, deadline_ns=opts.deadline_ns)
             self.links[robot] = link
             self.stream.tick_hooks.append(link.on_tick)
+        if opts.ros2 is not None:
+            from .ros2 import BRAIN_ID, Ros2Bridge  # rosbags is loaded only when ROS 2 is asked for
+
+            self.ros2 = Ros2Bridge(s, name, service, self.events, opts.ros2,
+                                   drive=lambda robot, targets: self._drive(BRAIN_ID, robot, targets))
+            self.stream.tick_hooks.append(self.ros2.on_tick)
         live = s.liveliness()
         self._entities += [
             live.declare_subscriber(p.key(name, "brain", "*"), self._on_brain, history=True),
@@ -216,6 +228,8 @@ class BridgeServer:
                 if served is not getattr(self, "main", None):
                     served.service.world.close()
             self._served.clear()
+        if self.ros2 is not None:
+            self.ros2.close()
         if getattr(self, "stream", None) is not None:
             with contextlib.suppress(ValueError):
                 self.world.unobserve(self.stream)
@@ -486,6 +500,14 @@ class BridgeServer:
         if self._input_allowed(msg.brain, "set"):
             self.main.service.submit(dict(msg.values))
 
+    def _drive(self, brain: str, robot: str, targets: list[float] | dict[str, float]) -> bool:
+        """Targets from another middleware (ROS 2) for a rig, routed to the simulation as a motion input;
+        False when a hold refused them (an ``input_refused`` event)."""
+        if not self._input_allowed(brain, "motion"):
+            return False
+        self.motion(self.main, p.MotionArgs(robot=robot, targets=targets, route="sim"), brain)
+        return True
+
     def _on_motion_input(self, sample: zenoh.Sample) -> None:
         try:
             msg = p.decode_input(p.MotionInput, payload_bytes(sample.payload), "in/motion")
@@ -506,6 +528,8 @@ class BridgeServer:
             "stream_frames": self.stream.frames_sent, "input_errors": served.service.input_errors[-5:],
             "running": self._ticking.describe() if self._ticking is not None else None,
         }
+        if self.ros2 is not None and served is self.main:
+            out["server"]["ros2"] = self.ros2.describe()
         return out
 
 

@@ -4,6 +4,7 @@ robot link, emulated in a process of its own. See ``bridge/PROTOCOL.md``."""
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 from pathlib import Path
@@ -71,6 +72,17 @@ def _positive_seconds(value: str, option: str) -> float:
     return seconds
 
 
+def _ros2_options(rate_hz: float):
+    from dynabrain.bridge.ros2 import Ros2Options
+
+    domain = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+    if not domain.isdigit():
+        raise DynabrainError(f"ROS_DOMAIN_ID must be a whole number >= 0, got {domain!r}")
+    if not rate_hz > 0:
+        raise DynabrainError(f"--ros2-rate must be a positive number of Hz, got {rate_hz!r}")
+    return Ros2Options(domain_id=int(domain), rate_hz=rate_hz)
+
+
 def _wait_for_signal(stop: threading.Event) -> None:
     def handler(signum, frame) -> None:
         stop.set()
@@ -110,7 +122,12 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
           trial_params: Annotated[bool, typer.Option(
               "--trial-params/--no-trial-params",
               help="try a brain's run-time parameter change on a fork, one tick, and refuse one that makes the tick "
-                   "fail")] = True) -> None:
+                   "fail")] = True,
+          ros2: Annotated[bool, typer.Option(
+              "--ros2", help="also speak ROS 2 (rmw_zenoh, Jazzy): /clock, /tf, joint_states, and joint commands to "
+                             "each --robot; domain from ROS_DOMAIN_ID")] = False,
+          ros2_rate: Annotated[float, typer.Option(
+              "--ros2-rate", help="ROS 2 messages per second of simulated time")] = 100.0) -> None:
     """Serve a world over Zenoh to remote brains (and robots) until interrupted."""
     from dynabrain.bridge.batching import BatchSettings
     from dynabrain.bridge.calls import DEFAULT_ALLOW_PYTHON
@@ -119,12 +136,13 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     settings = _settings(listen, connect, zenoh_config, lease, mode, ["tcp/127.0.0.1:7447"])
     batch = BatchSettings(batch_backend, batch_workers, batch_max_ticks)
+    ros2_options = _ros2_options(ros2_rate) if ros2 else None
     sc, world = _build(scenario)
     options = ServeOptions(name=name, stream=stream, decimate=decimate, robots=_robots(robot),
                            deadline_ns=parse_duration_ns(deadline), base_dir=sc.dir,
                            allow_python=DEFAULT_ALLOW_PYTHON if allow_python is None else allow_python, batch=batch,
                            tokenless_lease_s=_positive_seconds(tokenless_lease, "--tokenless-lease"),
-                           trial_params=trial_params)
+                           trial_params=trial_params, ros2=ros2_options)
     server = BridgeServer(world, settings, options)
     try:
         endpoints = server.open()
@@ -133,6 +151,10 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
         where = " ".join(endpoints) or f"(through {' '.join(settings.connect) or 'the configured router'})"
         print(f"serving world {server.name!r} (dynabrain/{server.name}/**) on {where} instance {server.instance}",
               flush=True)
+        if server.ros2 is not None:
+            info = server.ros2.describe()
+            print(f"ROS 2 node {info['node']} on domain {info['domain_id']} (rmw_zenoh {info['rmw_zenoh']} format)",
+                  flush=True)
         _wait_for_signal(threading.Event())
     finally:
         server.close()
