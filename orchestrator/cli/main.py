@@ -72,6 +72,9 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar")) -> None:
     """Run a scenario to its end and check its expectations."""
     scenario = resolve_scenario(scenario)
+    if not scenario.exists() and scenario.parent == Path("."):
+        err_console.print(f"no file {scenario} here, and no shipped scenario of that name (`dynabrain examples` "
+                          "lists them)", markup=False)
     sc = load_or_exit(scenario)
     if duration is not None:
         sc.duration_ns = _duration_option(duration)

@@ -176,16 +176,15 @@ class McapLogger(Observer):
             self._world, self._lock, self._dt = world, world.lock(), world.dt_ns
             if self.scene_every is None:
                 self.scene_every = max(1, round(1e9 / self._dt))
-            wall_ns = time.time_ns()
-            self.origin_ns = wall_ns - view.tick * self._dt
             if view.core is not None:
                 self._scene = SceneDrawing(view.core)
                 self._bodies = list(view.core.bodies())
             descriptors = {cls.DESCRIPTOR.full_name: foxglove_descriptor(cls)
                            for cls in (FrameTransforms, SceneUpdate, Log)}
             sink = ProcessSink if self.writer == "process" else ThreadSink
-            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors,
-                              self.origin_ns)
+            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors)
+            wall_ns = time.time_ns()  # the run starts now (the writer has started): log times count from here
+            self.origin_ns = wall_ns - view.tick * self._dt
             try:
                 settings = {"decimate": self.decimate, "scene_every": self.scene_every, "window": self.window,
                             "batch": self.batch, "writer": self.writer, **self._writer_args}

@@ -103,7 +103,6 @@ class Open(NamedTuple):
     decimate: int
     bodies: list[str] | None
     descriptors: dict[str, bytes]
-    origin_ns: int
 
 
 class Shared(NamedTuple):

@@ -70,6 +70,7 @@ from .messages import (
 from .schema import (
     DISCARDED,
     IMAGINED,
+    METADATA_NAME,
     TOPIC_BUS,
     TOPIC_EVENTS,
     TOPIC_SCENE,
@@ -106,9 +107,11 @@ class LogSink:
     """The writing side of a log (see the module docstring): runs where the `McapWriter` is."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], origin_ns: int = 0):
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
         self.writer = McapWriter(path, **writer_args)  # no profile: dynabrain is no well-known MCAP profile
-        self.dt, self.decimate, self.origin = dt_ns, decimate, origin_ns
+        self.dt, self.decimate = dt_ns, decimate
+        self.origin = 0
+        """The log time of tick 0: the ``time_origin_ns`` of the ``dynabrain`` metadata, written first."""
         self.held: list[_Held] = []
         self.topic_schemas: dict[str, int] = {}  # one schema per topic
         self.poses = PoseCodec(bodies) if bodies is not None else None
@@ -122,6 +125,8 @@ class LogSink:
 
     # -- calls ------------------------------------------------------------------------------------------
     def metadata(self, name: str, values: Mapping[str, str]) -> None:
+        if name == METADATA_NAME and "time_origin_ns" in values:
+            self.origin = int(values["time_origin_ns"])
         self.writer.add_metadata(name, values)
 
     def layout(self, key: int, meta: Mapping[str, str], cols: np.ndarray, missing: list[str]) -> None:
@@ -417,8 +422,8 @@ class ThreadSink:
     """The sink on the writer's thread of this process."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], origin_ns: int = 0):
-        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors, origin_ns)
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
+        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
         self._writer = self._sink.writer
         self._stats: dict[str, float] = {}
 
@@ -478,7 +483,7 @@ class ProcessSink:
     """The sink in a child process (see the module docstring)."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], origin_ns: int = 0):
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
         try:  # refuse a path that cannot be written here and now, not at the child's first write
             os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
         except OSError as exc:
@@ -496,7 +501,7 @@ class ProcessSink:
         self._stats: dict[str, float] = {}
         try:
             self._send(Open(path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
-                            dict(descriptors), origin_ns))
+                            dict(descriptors)))
             reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
             if type(reply) is not Ready:
                 raise DynabrainError(_reason(reply))

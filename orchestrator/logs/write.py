@@ -24,8 +24,9 @@ put the file in order afterwards (`logs.recover.rewrite`).
 
 Crash safety. Bytes go to the file with ``os.write`` (no user-space buffer), one chunk at a time, so a
 process killed with SIGKILL leaves every chunk that was written. A chunk is finished when it holds
-``chunk_bytes`` of records, when its messages would span ``chunk_ns`` of log time (simulated time, in
-a dynabrain log: 1 s by default, so a run faster than real time is chunked finely too) or when its
+``chunk_bytes`` of records, when its messages would span ``chunk_ns`` of log time (1 s by default: in a
+dynabrain log, whose log time runs with the simulated time, a run faster than real time is chunked
+finely too) or when its
 first record is ``flush_s`` seconds old (checked whenever a record is added), so a kill loses the
 chunk being filled and the finished ones still waiting for the thread (at most ``QUEUE_DEPTH`` jobs;
 in practice they are written within milliseconds).
@@ -33,7 +34,8 @@ in practice they are written within milliseconds).
 Damage. Every chunk declares the schemas and channels of its own messages (a channel's records go into
 each chunk before its first message there, and into the summary), so any chunk decodes on its own: a
 damaged chunk loses its own messages only, and a reader that resynchronises on the next valid chunk
-(`logs.scan` in lenient mode, ``dynabrain log recover``) keeps everything after it.
+(`logs.scan` in lenient mode, ``dynabrain log recover``) keeps everything after it. The MCAP spec allows
+these repeated records (identical each time); ``mcap doctor`` notes them as duplicates, a warning.
 """
 
 from __future__ import annotations
@@ -351,15 +353,6 @@ class McapWriter:
         chunk = self._chunk
         if chunk.pos >= self.chunk_bytes or time.monotonic() - chunk.born >= self.flush_s:
             self.flush()
-
-    def span_end(self, log_time: int) -> int | None:
-        """The log time from which messages no longer fit in the chunk being filled, for a batch whose
-        first message is at ``log_time`` (None: chunks are not limited by time). A caller writing
-        several channels of the same times splits its batches there, so that they share chunks."""
-        if self.chunk_ns is None:
-            return None
-        chunk = self._chunk
-        return (chunk.t_min if chunk.messages else log_time) + self.chunk_ns
 
     def _within_span(self, log_time: int) -> None:
         """Finish the chunk when a message at ``log_time`` would make it span ``chunk_ns`` or more."""
