@@ -17,6 +17,7 @@ Run: ``.venv/bin/python bench/fmu_chain.py``  (builds the FMU into the dynabrain
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import os
 import subprocess
@@ -30,7 +31,6 @@ from timing import best_of
 from dynabrain.orchestrator.fmu import load_fmu_info
 from dynabrain.orchestrator.fmu.build import compiler
 from dynabrain.orchestrator.fmu.module import FMUModule
-from dynabrain.orchestrator.kernel.module import Capabilities
 from dynabrain.orchestrator.kernel.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +48,7 @@ def master(info, *, save_states: bool = True, python_path: bool = False) -> tupl
     for i in range(N_FMUS):
         m = FMUModule(f"p{i}", info)
         if not save_states:
-            m.CAPABILITIES = Capabilities(can_rollback=False, can_fork=False, feedthrough=True)
+            m.CAPABILITIES = dataclasses.replace(m.CAPABILITIES, can_rollback=False, can_fork=False)
         world.add_module(m)
         if python_path:
             m._session.stepper.use_python()

@@ -279,10 +279,14 @@ def test_an_isolated_fmu_without_state_is_restarted_from_scratch_after_a_failure
 
 
 # -- non-finite outputs -------------------------------------------------------------------------------------
-@pytest.mark.parametrize("isolate", [False, True])
-def test_nan_and_infinite_fmu_outputs_fail_the_tick_they_appear(isolate):
+@pytest.mark.parametrize("how", ["C step", "Python step", "isolated"])
+def test_nan_and_infinite_fmu_outputs_fail_the_tick_they_appear(how):
     with World(step="1ms") as w:
-        w.add_module(module("q", "nonfinite", isolate=isolate))
+        m = module("q", "nonfinite", isolate=how == "isolated")
+        w.add_module(m)
+        if how == "Python step":
+            m._session.stepper.use_python()
+            m.bind()
         w.tick(3)
         w.set("q.u", -1.0)
         with pytest.raises(NonFiniteOutputError, match=r"'q': step\(\) at tick 3 failed: output 'root' is NaN") as err:

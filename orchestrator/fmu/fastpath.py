@@ -125,6 +125,8 @@ class Stepper:
         p.out, p.n_out = out_values.ctypes.data, self.n_out
         p.fmi3, p.no_prior = int(self.version == 3), int(self.no_prior)
         self._keep = (in_values, out_values)  # the plan holds their addresses
+        # the real outputs, summed to check them (as plain doubles: a view of the bus made by ctypes says "<d")
+        self._outs = memoryview(out_values[:self.n_out]).cast("B").cast("d")
 
     def set_step(self, dt_ns: int) -> None:
         self.dt_ns = dt_ns
@@ -150,7 +152,8 @@ class Stepper:
                 warn = (call << 4) | 1
             if call == 2 and self.version == 3 and self._flags[1]:
                 return (2 << 4) | TERMINATE
-        if p.n_out and not np.isfinite(self._keep[1][:p.n_out]).all():
+        total = sum(self._outs)  # a sum is NaN or infinite when a value is (or when it overflows: then look)
+        if not -1e309 < total < 1e309 and not np.isfinite(self._keep[1][:p.n_out]).all():
             return (3 << 4) | NONFINITE
         return warn
 

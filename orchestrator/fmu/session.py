@@ -225,7 +225,8 @@ class Session:
     def step(self, t_ns: int, dt_ns: int, save: bool) -> FMUState | None:
         """One step from ``t_ns`` (the fast path is inlined in `FMUModule.step`; this is the general one)."""
         stepper = self.stepper
-        self.require_usable(CALLS[self.api.version][2])
+        if self.unusable is not None or self.api.dead:
+            self.require_usable(CALLS[self.api.version][2])
         if dt_ns != stepper.dt_ns:
             stepper.set_step(dt_ns)
         if self.in_typed:

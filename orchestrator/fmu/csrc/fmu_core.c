@@ -209,6 +209,21 @@ static int compatible(Wire w, VarType t) {
     return 0;
 }
 
+/* Whether values go between the wire and the field as they are (same type, same layout). */
+static int plain(Wire w, VarType t) {
+    return w != W_BOOL_INT && w != W_BOOL8 && w != W_STR && w != W_BIN && !(t == T_ENUM && w == W_I64);
+}
+
+/* Copy `count` values of `width` bytes (constant-size copies: a store each, no call). */
+static inline void copy_values(char *dst, const char *src, size_t width, size_t count) {
+    switch (width) {
+    case 8: for (size_t i = 0; i < count; ++i) memcpy(dst + 8 * i, src + 8 * i, 8); break;
+    case 4: for (size_t i = 0; i < count; ++i) memcpy(dst + 4 * i, src + 4 * i, 4); break;
+    case 2: for (size_t i = 0; i < count; ++i) memcpy(dst + 2 * i, src + 2 * i, 2); break;
+    default: memcpy(dst, src, width * count);
+    }
+}
+
 static size_t wire_size(Wire w) {
     static const size_t sizes[] = {sizeof(double), sizeof(float), 1, 1, 2, 2, 4, 4, 8, 8, sizeof(int), sizeof(bool),
                                    sizeof(const char *), sizeof(const uint8_t *)};
@@ -241,7 +256,8 @@ static int plan_access(Instance *inst, Wire wire, const unsigned *vr, size_t nvr
             core_log(inst, MODEL_ERROR, "logStatusError", "%s: variable %s cannot be set now", call, v->name);
             return MODEL_ERROR;
         }
-        for (size_t j = 0; set && j < v->count && total + j < nvalues; ++j) {
+        bool checked = v->type == T_STR || v->type == T_BIN || (v->type == T_ENUM && wire == W_I64);
+        for (size_t j = 0; set && checked && j < v->count && total + j < nvalues; ++j) {
             size_t k = total + j;
             if (v->type == T_ENUM) {
                 int64_t x = wire == W_I64 ? ((const int64_t *)values)[k] : ((const int32_t *)values)[k];
@@ -277,8 +293,51 @@ static int plan_access(Instance *inst, Wire wire, const unsigned *vr, size_t nvr
 typedef FMU_BINARY(1) BinaryHead; /* every binary field starts so, whatever its capacity */
 #define BINARY_DATA(field) ((uint8_t *)(field) + offsetof(BinaryHead, data))
 
+/* Reals: the step's own calls, kept as short as they can be. */
+static int reals_ok(Instance *inst, const unsigned *vr, size_t nvr, size_t nvalues, bool set, const char *call) {
+    size_t total = 0;
+    for (size_t i = 0; i < nvr; ++i) {
+        if (vr[i] >= NVARS || VARS[vr[i]].type != T_REAL) return plan_access(inst, W_F64, vr, nvr, NULL, NULL, nvalues,
+                                                                             set, call);
+        if (set && !settable(inst, &VARS[vr[i]])) return plan_access(inst, W_F64, vr, nvr, NULL, NULL, nvalues, set, call);
+        total += VARS[vr[i]].count;
+    }
+    return total == nvalues ? MODEL_OK : plan_access(inst, W_F64, vr, nvr, NULL, NULL, nvalues, set, call);
+}
+
+static int set_reals(Instance *inst, const unsigned *vr, size_t nvr, const double *values, size_t nvalues,
+                     const char *call) {
+    int s = core_usable(inst, call);
+    if (s) return s;
+    if (nvr && (!vr || !values)) return MODEL_ERROR;
+    s = reals_ok(inst, vr, nvr, nvalues, true, call);
+    if (s) return s;
+    char *base = (char *)&inst->d;
+    for (size_t i = 0, k = 0; i < nvr; ++i) {
+        const VarInfo *v = &VARS[vr[i]];
+        for (size_t j = 0; j < v->count; ++j, ++k) ((double *)(base + v->offset))[j] = values[k];
+    }
+    return MODEL_OK;
+}
+
+static int get_reals(Instance *inst, const unsigned *vr, size_t nvr, double *values, size_t nvalues,
+                     const char *call) {
+    int s = core_usable(inst, call);
+    if (s) return s;
+    if (nvr && (!vr || !values)) return MODEL_ERROR;
+    s = reals_ok(inst, vr, nvr, nvalues, false, call);
+    if (s) return s;
+    const char *base = (const char *)&inst->d;
+    for (size_t i = 0, k = 0; i < nvr; ++i) {
+        const VarInfo *v = &VARS[vr[i]];
+        for (size_t j = 0; j < v->count; ++j, ++k) values[k] = ((const double *)(base + v->offset))[j];
+    }
+    return MODEL_OK;
+}
+
 int core_set(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, const void *values, const size_t *sizes,
              size_t nvalues, const char *call) {
+    if (wire == W_F64) return set_reals(inst, vr, nvr, values, nvalues, call);
     int s = core_usable(inst, call);
     if (s) return s;
     if (nvr && (!vr || !values)) return MODEL_ERROR;
@@ -289,6 +348,11 @@ int core_set(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, const vo
     for (size_t i = 0; i < nvr; ++i) {
         const VarInfo *v = &VARS[vr[i]];
         char *field = base + v->offset;
+        if (plain(wire, (VarType)v->type)) { /* numbers: one copy for the whole variable */
+            copy_values(field, (const char *)values + k * width, width, v->count);
+            k += v->count;
+            continue;
+        }
         for (size_t j = 0; j < v->count; ++j, ++k) {
             const char *src = (const char *)values + k * width;
             if (wire == W_BOOL_INT) ((int32_t *)field)[j] = *(const int *)src != 0;
@@ -307,6 +371,7 @@ int core_set(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, const vo
 
 int core_get(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, void *values, size_t *sizes, size_t nvalues,
              const char *call) {
+    if (wire == W_F64) return get_reals(inst, vr, nvr, values, nvalues, call);
     int s = core_usable(inst, call);
     if (s) return s;
     if (nvr && (!vr || !values || (wire == W_BIN && !sizes))) return MODEL_ERROR;
@@ -317,6 +382,11 @@ int core_get(Instance *inst, Wire wire, const unsigned *vr, size_t nvr, void *va
     for (size_t i = 0; i < nvr; ++i) {
         const VarInfo *v = &VARS[vr[i]];
         char *field = base + v->offset;
+        if (plain(wire, (VarType)v->type)) {
+            copy_values((char *)values + k * width, field, width, v->count);
+            k += v->count;
+            continue;
+        }
         for (size_t j = 0; j < v->count; ++j, ++k) {
             char *dst = (char *)values + k * width;
             if (wire == W_BOOL_INT) *(int *)dst = ((const int32_t *)field)[j] != 0;
