@@ -72,6 +72,20 @@ class VarCfg(_Strict):
     """An enumeration's items, numbered from 1."""
     capacity: int | None = None
     """A string's or binary's room in bytes (default 256; a string keeps one for its end)."""
+    clock: str | None = None
+    """FMI 3.0: the clock this variable belongs to (a clocked variable: set or changed at its ticks)."""
+
+
+class ClockCfg(_Strict):
+    """An FMI 3.0 clock: an input clock ticking every ``interval`` seconds from ``shift`` (time-based),
+    an input clock without an interval (triggered: the master says when), or an output clock the
+    model ticks (``fmu_tick``)."""
+
+    name: str
+    causality: Literal["input", "output"] = "input"
+    interval: float | None = None
+    shift: float = 0.0
+    description: str = ""
 
 
 class CStateCfg(_Strict):
@@ -101,6 +115,19 @@ class SpecCfg(_Strict):
     capabilities: CapsCfg = CapsCfg()
     variables: list[VarCfg]
     c_state: list[CStateCfg] = []
+    clocks: list[ClockCfg] = []
+    """FMI 3.0 clocks (the FMU then has event mode): the model implements ``model_clock``."""
+
+
+@dataclass(frozen=True)
+class Clock:
+    """A checked clock: ``interval`` None for a triggered one (or an output clock)."""
+
+    name: str
+    causality: str
+    interval: float | None
+    shift: float
+    description: str
 
 
 @dataclass(frozen=True)
@@ -121,6 +148,7 @@ class Var:
     depends: tuple[str, ...] | None
     items: tuple[str, ...] = ()
     capacity: int = 0
+    clock: str | None = None
 
     @property
     def count(self) -> int:
@@ -145,6 +173,7 @@ class FmuSpec:
     variables: tuple[Var, ...]
     c_state: tuple[tuple[str, str, str | None], ...]
     start_time: float | None = None
+    clocks: tuple[Clock, ...] = ()
 
 
 def load_spec(folder: str | Path) -> FmuSpec:
@@ -187,7 +216,8 @@ class _Checker:
         if not cfg.fmi or len(set(cfg.fmi)) != len(cfg.fmi):
             self.report(("fmi",), "fmi lists each version (2, 3) once")
         variables = self._variables()
-        c_state = self._c_state({v.name for v in variables})
+        clocks = self._clocks(variables)
+        c_state = self._c_state({v.name for v in variables} | {c.name for c in clocks})
         sources = self._sources()
         if cfg.step is not None and not (cfg.step > 0 and math.isfinite(cfg.step)):
             self.report(("step",), "step must be a positive number of seconds")
@@ -199,7 +229,32 @@ class _Checker:
             raise _fail(self.problems)
         return FmuSpec(self.folder, cfg.name, cfg.description, cfg.version, tuple(cfg.fmi), dict(cfg.defines),
                        sources, tuple(cfg.cflags), cfg.step, cfg.capabilities.get_set_state,
-                       cfg.capabilities.serialize, variables, c_state, cfg.start_time)
+                       cfg.capabilities.serialize, variables, c_state, cfg.start_time, clocks)
+
+    def _clocks(self, variables: tuple[Var, ...]) -> tuple[Clock, ...]:
+        out: list[Clock] = []
+        names = {v.name for v in variables}
+        for i, c in enumerate(self.cfg.clocks):
+            path = ("clocks", i)
+            if not IDENT.match(c.name) or c.name in names or c.name in RESERVED:
+                self.report((*path, "name"), f"clock name {c.name!r} must be a new C identifier")
+            names.add(c.name)
+            if c.interval is not None and not (c.interval > 0 and math.isfinite(c.interval)):
+                self.report((*path, "interval"), "a clock's interval is a positive number of seconds")
+            if c.causality == "output" and c.interval is not None:
+                self.report((*path, "interval"), "an output clock ticks when the model says (fmu_tick): no interval")
+            if not (math.isfinite(c.shift) and c.shift >= 0 and (c.interval is None or c.shift < c.interval)):
+                self.report((*path, "shift"), "a clock's shift is from 0 up to its interval (seconds)")
+            out.append(Clock(c.name, c.causality, c.interval, c.shift, c.description))
+        if out and 2 in self.cfg.fmi:
+            self.report(("clocks",), "clocks are FMI 3.0: build this FMU for FMI 3.0 only (fmi: [3])")
+        known = {c.name for c in out}
+        for i, v in enumerate(self.cfg.variables):
+            if v.clock is not None and v.clock not in known:
+                self.report(("variables", i, "clock"), f"{v.clock!r} is not a clock of this FMU (clocks:)")
+            if v.clock is not None and i < len(variables) and variables[i].variability == "continuous":
+                self.report(("variables", i, "variability"), "a clocked variable is discrete")
+        return tuple(out)
 
     def _size(self, value: int | str | None, path: tuple) -> tuple[int | None, str | None]:
         if value is None:
@@ -232,7 +287,7 @@ class _Checker:
             capacity = (v.capacity or DEFAULT_CAPACITY) if v.type in TEXT else 0
             out.append(Var(v.name, v.type, v.causality, variability, size, expr, start, v.start is not None,
                            v.unit, v.description, tuple(v.depends) if v.depends is not None else None,
-                           tuple(v.items or ()), capacity))
+                           tuple(v.items or ()), capacity, v.clock))
         inputs = {v.name for v in out if v.causality == "input"}
         for i, v in enumerate(out):
             if v.depends is not None:
@@ -249,7 +304,7 @@ class _Checker:
     def _default_variability(v: VarCfg) -> str:
         if v.causality == "parameter":
             return "fixed"
-        return "continuous" if v.type in FLOATS else "discrete"
+        return "continuous" if v.type in FLOATS and v.clock is None else "discrete"
 
     def _check_type(self, v: VarCfg, size: int | None, path: tuple) -> None:
         """What only some types have: FMI versions, items, capacity, vectors."""

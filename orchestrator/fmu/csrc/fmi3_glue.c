@@ -1,6 +1,7 @@
-/* FMI 3.0 co-simulation API of a dynabrain C FMU, on the version-neutral core (fmu_glue.h).
- * Model exchange, scheduled execution and clocks are refused with fmi3Error and a log message, so
- * every function of the standard is present in the binary. */
+/* FMI 3.0 co-simulation API of a dynabrain C FMU, on the version-neutral core (fmu_glue.h), with
+ * event mode and clocks (time-based and triggered input clocks, output clocks). Model exchange and
+ * scheduled execution are refused with fmi3Error and a log message, so every function of the
+ * standard is present in the binary. */
 #include <string.h>
 
 #include "fmi3Functions.h"
@@ -41,9 +42,12 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
                                          fmi3InstanceEnvironment instanceEnvironment,
                                          fmi3LogMessageCallback logMessage,
                                          fmi3IntermediateUpdateCallback intermediateUpdate) {
-    (void)resourcePath, (void)visible, (void)eventModeUsed, (void)earlyReturnAllowed;
+    (void)resourcePath, (void)visible, (void)earlyReturnAllowed;
     (void)requiredIntermediateVariables, (void)nRequiredIntermediateVariables, (void)intermediateUpdate;
-    return core_new(instanceName, instantiationToken, emit3, instanceEnvironment, (void *)logMessage, loggingOn);
+    Instance *inst = core_new(instanceName, instantiationToken, emit3, instanceEnvironment, (void *)logMessage,
+                              loggingOn);
+    if (inst) inst->event_mode_used = eventModeUsed;
+    return inst;
 }
 
 fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3String instantiationToken,
@@ -68,7 +72,7 @@ fmi3Status fmi3EnterInitializationMode(fmi3Instance instance, fmi3Boolean tolera
 }
 
 fmi3Status fmi3ExitInitializationMode(fmi3Instance instance) { return (fmi3Status)core_exit_init(INST); }
-fmi3Status fmi3EnterEventMode(fmi3Instance instance) { UNSUPPORTED("fmi3EnterEventMode"); }
+fmi3Status fmi3EnterEventMode(fmi3Instance instance) { return (fmi3Status)core_enter_event_mode(INST); }
 fmi3Status fmi3Terminate(fmi3Instance instance) { return (fmi3Status)core_terminate(INST); }
 
 fmi3Status fmi3Reset(fmi3Instance instance) {
@@ -118,14 +122,12 @@ fmi3Status fmi3SetBinary(fmi3Instance instance, const fmi3ValueReference valueRe
 
 fmi3Status fmi3GetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                         fmi3Clock values[]) {
-    (void)valueReferences, (void)nValueReferences, (void)values;
-    UNSUPPORTED("fmi3GetClock");
+    return (fmi3Status)core_get_clock(INST, valueReferences, nValueReferences, values);
 }
 
 fmi3Status fmi3SetClock(fmi3Instance instance, const fmi3ValueReference valueReferences[], size_t nValueReferences,
                         const fmi3Clock values[]) {
-    (void)valueReferences, (void)nValueReferences, (void)values;
-    UNSUPPORTED("fmi3SetClock");
+    return (fmi3Status)core_set_clock(INST, valueReferences, nValueReferences, values);
 }
 
 fmi3Status fmi3GetNumberOfVariableDependencies(fmi3Instance instance, fmi3ValueReference valueReference,
@@ -194,8 +196,11 @@ fmi3Status fmi3ExitConfigurationMode(fmi3Instance instance) { UNSUPPORTED("fmi3E
 fmi3Status fmi3GetIntervalDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
                                   size_t nValueReferences, fmi3Float64 intervals[],
                                   fmi3IntervalQualifier qualifiers[]) {
-    (void)valueReferences, (void)nValueReferences, (void)intervals, (void)qualifiers;
-    UNSUPPORTED("fmi3GetIntervalDecimal");
+    int q[64];
+    if (nValueReferences > 64) UNSUPPORTED("fmi3GetIntervalDecimal of more than 64 clocks at once");
+    int s = core_get_interval(INST, valueReferences, nValueReferences, intervals, q);
+    for (size_t i = 0; s <= fmi3Warning && i < nValueReferences; ++i) qualifiers[i] = (fmi3IntervalQualifier)q[i];
+    return (fmi3Status)s;
 }
 
 fmi3Status fmi3GetIntervalFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
@@ -207,8 +212,7 @@ fmi3Status fmi3GetIntervalFraction(fmi3Instance instance, const fmi3ValueReferen
 
 fmi3Status fmi3GetShiftDecimal(fmi3Instance instance, const fmi3ValueReference valueReferences[],
                                size_t nValueReferences, fmi3Float64 shifts[]) {
-    (void)valueReferences, (void)nValueReferences, (void)shifts;
-    UNSUPPORTED("fmi3GetShiftDecimal");
+    return (fmi3Status)core_get_shift(INST, valueReferences, nValueReferences, shifts);
 }
 
 fmi3Status fmi3GetShiftFraction(fmi3Instance instance, const fmi3ValueReference valueReferences[],
@@ -248,9 +252,15 @@ fmi3Status fmi3UpdateDiscreteStates(fmi3Instance instance, fmi3Boolean *discrete
                                     fmi3Boolean *terminateSimulation, fmi3Boolean *nominalsOfContinuousStatesChanged,
                                     fmi3Boolean *valuesOfContinuousStatesChanged, fmi3Boolean *nextEventTimeDefined,
                                     fmi3Float64 *nextEventTime) {
-    (void)discreteStatesNeedUpdate, (void)terminateSimulation, (void)nominalsOfContinuousStatesChanged;
-    (void)valuesOfContinuousStatesChanged, (void)nextEventTimeDefined, (void)nextEventTime;
-    UNSUPPORTED("fmi3UpdateDiscreteStates");
+    bool terminate = false;
+    int s = core_update_discrete_states(INST, &terminate);
+    if (discreteStatesNeedUpdate) *discreteStatesNeedUpdate = false; /* model_clock runs once per tick */
+    if (terminateSimulation) *terminateSimulation = terminate;
+    if (nominalsOfContinuousStatesChanged) *nominalsOfContinuousStatesChanged = false;
+    if (valuesOfContinuousStatesChanged) *valuesOfContinuousStatesChanged = false;
+    if (nextEventTimeDefined) *nextEventTimeDefined = false; /* time-based clocks say when they tick */
+    if (nextEventTime) *nextEventTime = 0.0;
+    return (fmi3Status)s;
 }
 
 fmi3Status fmi3EnterContinuousTimeMode(fmi3Instance instance) { UNSUPPORTED("fmi3EnterContinuousTimeMode"); }
@@ -306,7 +316,7 @@ fmi3Status fmi3GetNumberOfContinuousStates(fmi3Instance instance, size_t *nConti
     return fmi3OK;
 }
 
-fmi3Status fmi3EnterStepMode(fmi3Instance instance) { UNSUPPORTED("fmi3EnterStepMode"); }
+fmi3Status fmi3EnterStepMode(fmi3Instance instance) { return (fmi3Status)core_enter_step_mode(INST); }
 
 fmi3Status fmi3GetOutputDerivatives(fmi3Instance instance, const fmi3ValueReference valueReferences[],
                                     size_t nValueReferences, const fmi3Int32 orders[], fmi3Float64 values[],
@@ -321,7 +331,7 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
                       fmi3Float64 *lastSuccessfulTime) {
     (void)noSetFMUStatePriorToCurrentPoint;
     int s = core_do_step(INST, currentCommunicationPoint, communicationStepSize);
-    if (eventHandlingNeeded) *eventHandlingNeeded = false;
+    if (eventHandlingNeeded) *eventHandlingNeeded = instance && INST->event_mode_used && core_event_pending(INST);
     if (terminateSimulation) *terminateSimulation = instance && INST->stop;
     if (earlyReturn) *earlyReturn = false;
     if (lastSuccessfulTime && instance) *lastSuccessfulTime = INST->d.time;

@@ -50,6 +50,20 @@ void fmu_stop(const ModelData *m, const char *format, ...) {
     if (inst->emit) inst->emit(inst, MODEL_OK, "logEvents", message);
 }
 
+#if defined(__GNUC__)
+__attribute__((weak))
+#endif
+int model_clock(ModelData *m, int clock) { /* a model without clocks needs none */
+    (void)m;
+    (void)clock;
+    return MODEL_OK;
+}
+
+void fmu_tick(const ModelData *m, int clock) {
+    Instance *inst = (Instance *)m;
+    if (clock >= 0 && clock < NCLOCKS && !CLOCK_INFO[clock].input) inst->clock_active[clock] = 1;
+}
+
 void core_log(Instance *inst, int status, const char *category, const char *format, ...) {
     char message[1024];
     va_list args;
@@ -101,6 +115,8 @@ void core_reset(Instance *inst) {
     model_starts(&inst->d);
     inst->mode = MODE_INSTANTIATED;
     inst->stop = false;
+    memset(inst->clock_active, 0, sizeof inst->clock_active);
+    memset(inst->clock_done, 0, sizeof inst->clock_done);
 }
 
 int core_usable(Instance *inst, const char *call) {
@@ -142,7 +158,7 @@ int core_exit_init(Instance *inst) {
     s = model_init(&inst->d);
     if (s > MODEL_DISCARD) return fail(inst, s);
     if (s == MODEL_DISCARD) return MODEL_ERROR;
-    inst->mode = MODE_STEP;
+    inst->mode = inst->event_mode_used ? MODE_EVENT : MODE_STEP; /* FMI 3: initialization ends in event mode */
     return s;
 }
 
@@ -440,6 +456,8 @@ int core_set_state(Instance *inst, void *state) {
     memcpy(&inst->d, &saved->d, sizeof inst->d);
     inst->mode = saved->mode;
     inst->stop = false;
+    memset(inst->clock_active, 0, sizeof inst->clock_active);
+    memset(inst->clock_done, 0, sizeof inst->clock_done);
     return MODEL_OK;
 }
 
@@ -497,4 +515,122 @@ int core_deserialize(Instance *inst, const unsigned char *in, size_t size, void 
 int core_unsupported(Instance *inst, const char *call) {
     if (inst) core_log(inst, MODEL_ERROR, "logStatusError", "%s is not supported by this FMU", call);
     return MODEL_ERROR;
+}
+
+/* -- FMI 3.0 event mode and clocks ------------------------------------------------------------------ */
+static int in_mode(Instance *inst, Mode mode, const char *call) {
+    int s = core_usable(inst, call);
+    if (s) return s;
+    if (inst->mode != mode) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: not in %s mode", call, mode == MODE_EVENT ? "event" : "step");
+        return MODEL_ERROR;
+    }
+    return MODEL_OK;
+}
+
+/* Deactivate the input clocks (and the output clocks too when `outputs`). */
+static void clear_clocks(Instance *inst, bool outputs) {
+    for (int c = 0; c < NCLOCKS; ++c) {
+        if (outputs || CLOCK_INFO[c].input) inst->clock_active[c] = 0;
+        inst->clock_done[c] = 0;
+    }
+}
+
+/* Whether an output clock ticked (in model_step: the master must handle the event). */
+bool core_event_pending(Instance *inst) {
+    for (int c = 0; c < NCLOCKS; ++c)
+        if (!CLOCK_INFO[c].input && inst->clock_active[c]) return true;
+    return false;
+}
+
+int core_enter_event_mode(Instance *inst) {
+    int s = in_mode(inst, MODE_STEP, "EnterEventMode");
+    if (s) return s;
+    inst->mode = MODE_EVENT;
+    clear_clocks(inst, false); /* output clocks ticked by the last step stay for GetClock */
+    return MODEL_OK;
+}
+
+int core_enter_step_mode(Instance *inst) {
+    int s = in_mode(inst, MODE_EVENT, "EnterStepMode");
+    if (s) return s;
+    inst->mode = MODE_STEP;
+    clear_clocks(inst, true);
+    return MODEL_OK;
+}
+
+/* The clock number of value reference `vr`, or -1 (said why). */
+static int clock_of(Instance *inst, unsigned vr, const char *call) {
+    if (vr >= NVARS || VARS[vr].type != T_CLOCK) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "%s: value reference %u is not a clock", call, vr);
+        return -1;
+    }
+    return (int)VARS[vr].offset;
+}
+
+int core_set_clock(Instance *inst, const unsigned *vr, size_t nvr, const bool *values) {
+    int s = in_mode(inst, MODE_EVENT, "SetClock");
+    if (s) return s;
+    for (size_t i = 0; i < nvr; ++i) {
+        int c = clock_of(inst, vr[i], "SetClock");
+        if (c < 0) return MODEL_ERROR;
+        if (!CLOCK_INFO[c].input) {
+            core_log(inst, MODEL_ERROR, "logStatusError", "SetClock: %s is an output clock", VARS[vr[i]].name);
+            return MODEL_ERROR;
+        }
+    }
+    for (size_t i = 0; i < nvr; ++i) inst->clock_active[VARS[vr[i]].offset] = values[i] ? 1 : 0;
+    return MODEL_OK;
+}
+
+int core_get_clock(Instance *inst, const unsigned *vr, size_t nvr, bool *values) {
+    int s = in_mode(inst, MODE_EVENT, "GetClock");
+    if (s) return s;
+    for (size_t i = 0; i < nvr; ++i) {
+        int c = clock_of(inst, vr[i], "GetClock");
+        if (c < 0) return MODEL_ERROR;
+        values[i] = inst->clock_active[c] != 0;
+        if (!CLOCK_INFO[c].input) inst->clock_active[c] = 0; /* an output clock is reset by reading it */
+    }
+    return MODEL_OK;
+}
+
+int core_update_discrete_states(Instance *inst, bool *terminate) {
+    int s = in_mode(inst, MODE_EVENT, "UpdateDiscreteStates");
+    if (s) return s;
+    int worst = MODEL_OK;
+    inst->stop = false;
+    for (int c = 0; c < NCLOCKS; ++c) {
+        if (!CLOCK_INFO[c].input || !inst->clock_active[c] || inst->clock_done[c]) continue;
+        inst->clock_done[c] = 1;
+        s = model_clock(&inst->d, c);
+        if (s > MODEL_DISCARD) return fail(inst, s);
+        if (s == MODEL_DISCARD) return MODEL_ERROR; /* no step to discard in event mode */
+        if (s > worst) worst = s;
+    }
+    if (terminate) *terminate = inst->stop;
+    return worst;
+}
+
+int core_get_interval(Instance *inst, const unsigned *vr, size_t nvr, double *intervals, int *qualifiers) {
+    int s = core_usable(inst, "GetIntervalDecimal");
+    if (s) return s;
+    for (size_t i = 0; i < nvr; ++i) {
+        int c = clock_of(inst, vr[i], "GetIntervalDecimal");
+        if (c < 0) return MODEL_ERROR;
+        intervals[i] = CLOCK_INFO[c].interval;
+        qualifiers[i] = CLOCK_INFO[c].interval > 0 ? 1 /* fmi3IntervalUnchanged */ : 0 /* NotYetKnown */;
+    }
+    return MODEL_OK;
+}
+
+int core_get_shift(Instance *inst, const unsigned *vr, size_t nvr, double *shifts) {
+    int s = core_usable(inst, "GetShiftDecimal");
+    if (s) return s;
+    for (size_t i = 0; i < nvr; ++i) {
+        int c = clock_of(inst, vr[i], "GetShiftDecimal");
+        if (c < 0) return MODEL_ERROR;
+        shifts[i] = CLOCK_INFO[c].shift;
+    }
+    return MODEL_OK;
 }

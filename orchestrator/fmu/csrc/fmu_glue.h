@@ -17,7 +17,8 @@
 #endif
 
 /* How a variable is stored in ModelData (see fmu_model.h). */
-typedef enum { T_REAL, T_INT, T_BOOL, T_F32, T_I8, T_U8, T_I16, T_U16, T_U32, T_I64, T_U64, T_ENUM, T_STR, T_BIN } VarType;
+typedef enum { T_REAL, T_INT, T_BOOL, T_F32, T_I8, T_U8, T_I16, T_U16, T_U32, T_I64, T_U64, T_ENUM, T_STR, T_BIN,
+               T_CLOCK } VarType; /* a clock's `offset` is its number (CLOCK_<name>) */
 /* How values cross the API: an FMI get/set function's value type. */
 typedef enum { W_F64, W_F32, W_I8, W_U8, W_I16, W_U16, W_I32, W_U32, W_I64, W_U64, W_BOOL_INT, W_BOOL8, W_STR,
                W_BIN } Wire;
@@ -34,7 +35,14 @@ typedef struct {
     const char *name;
 } VarInfo;
 
-typedef enum { MODE_INSTANTIATED, MODE_INIT, MODE_STEP, MODE_TERMINATED, MODE_ERROR, MODE_FATAL } Mode;
+typedef enum { MODE_INSTANTIATED, MODE_INIT, MODE_STEP, MODE_TERMINATED, MODE_ERROR, MODE_FATAL, MODE_EVENT } Mode;
+
+/* A clock (FMI 3.0): an input clock the master activates (time-based with `interval` and `shift`
+ * seconds, or triggered when `interval` is 0), or an output clock the model ticks (fmu_tick). */
+typedef struct {
+    int input;
+    double interval, shift;
+} ClockInfo;
 
 struct Instance;
 typedef void (*EmitFn)(struct Instance *inst, int status, const char *category, const char *message);
@@ -48,6 +56,9 @@ typedef struct Instance {
     void *env;       /* FMI 2: the callback functions; FMI 3: the instance environment */
     void *logger;    /* FMI 3: the log message callback */
     bool stop;       /* the model asked to end the simulation in the last step (fmu_stop) */
+    bool event_mode_used;                 /* FMI 3: the master handles events (clocks) in event mode */
+    unsigned char clock_active[NCLOCKS + 1]; /* in event mode: the clocks ticking now */
+    unsigned char clock_done[NCLOCKS + 1];   /* ... and the input clocks model_clock has run for */
 } Instance;
 
 /* A saved FMU state: the model data and the mode it was in. */
@@ -84,5 +95,14 @@ GLUE_INTERNAL size_t core_serialized_size(void);
 GLUE_INTERNAL int core_serialize(Instance *inst, void *state, unsigned char *out, size_t size);
 GLUE_INTERNAL int core_deserialize(Instance *inst, const unsigned char *in, size_t size, void **state);
 GLUE_INTERNAL int core_unsupported(Instance *inst, const char *call);
+/* FMI 3.0 event mode and clocks */
+GLUE_INTERNAL int core_enter_event_mode(Instance *inst);
+GLUE_INTERNAL bool core_event_pending(Instance *inst);
+GLUE_INTERNAL int core_enter_step_mode(Instance *inst);
+GLUE_INTERNAL int core_set_clock(Instance *inst, const unsigned *vr, size_t nvr, const bool *values);
+GLUE_INTERNAL int core_get_clock(Instance *inst, const unsigned *vr, size_t nvr, bool *values);
+GLUE_INTERNAL int core_update_discrete_states(Instance *inst, bool *terminate);
+GLUE_INTERNAL int core_get_interval(Instance *inst, const unsigned *vr, size_t nvr, double *intervals, int *qualifiers);
+GLUE_INTERNAL int core_get_shift(Instance *inst, const unsigned *vr, size_t nvr, double *shifts);
 
 #endif

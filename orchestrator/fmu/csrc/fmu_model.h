@@ -19,7 +19,8 @@
  * state is restored, MODEL_FATAL ends it. Say why with fmu_log() before returning anything but OK.
  * A model that has reached its end (a tank empty, a game over) calls fmu_stop() in model_step and
  * returns MODEL_OK: the master is asked to end the simulation there (FMI 3.0: terminateSimulation;
- * FMI 2.0: fmi2Discard, and fmi2GetBooleanStatus(fmi2Terminated) says true).
+ * FMI 2.0: fmi2Discard, and fmi2GetBooleanStatus(fmi2Terminated) says true). An FMI 3.0 model with
+ * clocks also implements model_clock (below): the master runs it in event mode at each tick.
  *
  * Field types (fmu.yaml `type:`): real double, float32 float, int8..uint64 the <stdint.h> types,
  * integer int32_t, boolean int32_t (0 or 1), enumeration int32_t (1..the number of items), string
@@ -40,6 +41,14 @@ enum { MODEL_OK = 0, MODEL_WARNING = 1, MODEL_DISCARD = 2, MODEL_ERROR = 3, MODE
 
 int model_init(ModelData *m);
 int model_step(ModelData *m, double h);
+
+/* FMI 3.0 clocks (fmu.yaml `clocks:`; CLOCK_<name> numbers them): called in event mode for each
+ * input clock that ticks, after the clocked inputs are set; it updates clocked variables and may
+ * tick output clocks with fmu_tick(). A model without clocks need not define it. */
+int model_clock(ModelData *m, int clock);
+
+/* Tick an output clock (in model_clock). */
+void fmu_tick(const ModelData *m, int clock);
 
 /* Log a message through the master's logger (printf format). */
 void fmu_log(const ModelData *m, int status, const char *format, ...)
