@@ -342,6 +342,12 @@ class Fmi3Api(FmuApi):
            for op in ("set", "get") for k, t in _TYPES3.items()},
         "set_binary": ("fmi3SetBinary", c_int, (_P, _P, c_size_t, _P, _P, c_size_t)),
         "get_binary": ("fmi3GetBinary", c_int, (_P, _P, c_size_t, _P, _P, c_size_t)),
+        "enter_event_mode": ("fmi3EnterEventMode", c_int, (_P,)),
+        "enter_step_mode": ("fmi3EnterStepMode", c_int, (_P,)),
+        "update_discrete_states": ("fmi3UpdateDiscreteStates", c_int, (_P, _P, _P, _P, _P, _P, _P)),
+        "set_clock": ("fmi3SetClock", c_int, (_P, _P, c_size_t, _P)),
+        "get_clock": ("fmi3GetClock", c_int, (_P, _P, c_size_t, _P)),
+        "get_interval": ("fmi3GetIntervalDecimal", c_int, (_P, _P, c_size_t, _P, _P)),
     }
     DTYPES: ClassVar[dict[str, Any]] = {"real": np.float64, "float32": np.float32, "int8": np.int8, "uint8": np.uint8,
                                         "int16": np.int16, "uint16": np.uint16, "integer": np.int32,
@@ -357,7 +363,7 @@ class Fmi3Api(FmuApi):
         resources = os.path.join(self.unzip_dir, "resources") + os.sep
         self.enter("fmi3InstantiateCoSimulation")
         ptr = self.c["instantiate"](self.name.encode(), self.info.token.encode(), resources.encode(), False,
-                                    logging_on, False, False, None, 0, self.sink.key,
+                                    logging_on, bool(self.info.clocks), False, None, 0, self.sink.key,
                                     ctypes.cast(_LOGGER3, c_void_p).value, None)
         if not ptr:
             lines = self.sink.take()
@@ -389,6 +395,39 @@ class Fmi3Api(FmuApi):
         sizes, ptrs = (c_size_t * n)(), (c_void_p * n)()
         self._call("get_binary", self.instance, vrs.ctypes.data, n, ctypes.addressof(sizes), ctypes.addressof(ptrs), n)
         return [ctypes.string_at(p, size) if size else b"" for p, size in zip(ptrs, sizes, strict=True)]
+
+    # -- event mode and clocks (see `clocks`) ------------------------------------------------------------
+    def enter_event_mode(self) -> None:
+        self._call("enter_event_mode", self.instance)
+
+    def enter_step_mode(self) -> None:
+        self._call("enter_step_mode", self.instance)
+
+    def update_discrete_states(self) -> tuple[bool, bool]:
+        """(discreteStatesNeedUpdate, terminateSimulation)."""
+        flags = (ctypes.c_bool * 5)()
+        time = ctypes.c_double()
+        a = ctypes.addressof(flags)
+        self._call("update_discrete_states", self.instance, a, a + 1, a + 2, a + 3, a + 4, ctypes.addressof(time))
+        return bool(flags[0]), bool(flags[1])
+
+    def set_clocks(self, vrs: np.ndarray, active: np.ndarray) -> None:
+        if len(vrs):
+            self._call("set_clock", self.instance, vrs.ctypes.data, len(vrs), active.ctypes.data)
+
+    def get_clocks(self, vrs: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(vrs), dtype=np.bool_)
+        if len(vrs):
+            self._call("get_clock", self.instance, vrs.ctypes.data, len(vrs), out.ctypes.data)
+        return out
+
+    def get_intervals(self, vrs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(intervals in seconds, qualifiers: 0 not yet known, 1 unchanged, 2 changed)."""
+        intervals, qualifiers = np.zeros(len(vrs)), np.zeros(len(vrs), dtype=np.int32)
+        if len(vrs):
+            self._call("get_interval", self.instance, vrs.ctypes.data, len(vrs), intervals.ctypes.data,
+                       qualifiers.ctypes.data)
+        return intervals, qualifiers
 
     def do_step(self, t: float, h: float, no_prior: bool) -> int:
         base = self._flag_bytes.ctypes.data

@@ -104,6 +104,11 @@ class Stepper:
             self.fn, self.arg = self._py_step, 0
 
     @property
+    def event_needed(self) -> int:
+        """FMI 3.0: whether the last step (on the Python path) said eventHandlingNeeded."""
+        return int(self._flags[0])
+
+    @property
     def fast(self) -> bool:
         return self.fn is self.c_helper
 

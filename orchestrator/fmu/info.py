@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .clocks import CLOCK_UNIT, FmuClock, read_clocks
 from .errors import FMUError
 from .paths import SHARED_LIB_EXT, binary_dir
 
@@ -65,6 +66,9 @@ class Signal:
     """For an output: value references of the inputs it depends on directly (None: all)."""
     fmi_type: str = ""
     """The FMI type as the model description writes it (``Enumeration``, ``Int64``, ...)."""
+    clocks: tuple[int, ...] = ()
+    """FMI 3.0: the value references of the clocks this variable belongs to (a clocked variable: set
+    and read in event mode at their ticks); a clock port (type ``clock``) has its own."""
 
     @property
     def size(self) -> int:
@@ -97,6 +101,8 @@ class FmuInfo:
     """What the user named (a source folder, a file); the path when empty."""
     start_time: float = 0.0
     """``DefaultExperiment.startTime``: the FMU's time when it joins a world at t=0 (0 when not given)."""
+    clocks: tuple[FmuClock, ...] = ()
+    """FMI 3.0 clocks (see `clocks`): the FMU then runs with event mode."""
 
     @property
     def label(self) -> str:
@@ -132,16 +138,17 @@ def read_fmu_info(path: str | Path, label: str | None = None) -> FmuInfo:
         kinds = [k for k, v in (("model exchange", md.modelExchange),
                                 ("scheduled execution", getattr(md, "scheduledExecution", None))) if v is not None]
         raise FMUError(f"FMU {name}: a {' and '.join(kinds) or 'non-co-simulation'} FMU without co-simulation; "
-                       "dynabrain runs co-simulation FMUs (export it for co-simulation)")
+                       "dynabrain runs co-simulation FMUs, FMI 3.0 clocks included (export it for co-simulation)")
     _check_binary(names, version, cs.modelIdentifier, name)
-    inputs, outputs, params, skipped = _signals(md, version, name)
+    clocks = read_clocks(path, md, name) if version == 3 else ()
+    inputs, outputs, params, skipped = _signals(md, version, name, clocks)
     experiment = md.defaultExperiment
     step = float(experiment.stepSize) if experiment and experiment.stepSize else None
     start = float(experiment.startTime) if experiment and experiment.startTime else 0.0
     return FmuInfo(str(path), version, md.modelName, cs.modelIdentifier, md.guid or "", md.description or "",
                    bool(cs.canGetAndSetFMUstate), bool(cs.canGetAndSetFMUstate and cs.canSerializeFMUstate),
                    bool(cs.canBeInstantiatedOnlyOncePerProcess), inputs, outputs, params, tuple(skipped), step,
-                   label or "", start)
+                   label or "", start, clocks)
 
 
 def _read_description(path: Path, name: str) -> Any:
@@ -207,12 +214,16 @@ def _shape(variable: Any, md: Any, name: str) -> tuple[int, ...]:
     return tuple(shape)
 
 
-def _signals(md: Any, version: int, name: str) -> tuple[tuple[Signal, ...], ...]:
+def _signals(md: Any, version: int, name: str, clocks: tuple[FmuClock, ...] = ()) -> tuple[tuple[Signal, ...], ...]:
     types = _TYPES2 if version == 2 else _TYPES3
     loose: list[tuple[Any, str, tuple[int, ...]]] = []
     skipped, ports = [], 0
+    clock_ports = {c.vr for c in clocks if c.on_bus}
     for v in md.modelVariables:
-        if v.causality not in _KIND:
+        if v.causality not in _KIND or (v.type == "Clock" and v.valueReference not in clock_ports):
+            continue
+        if v.type == "Clock":
+            loose.append((v, "clock", ()))
             continue
         kind = types.get(v.type)
         on_bus = kind in BUS_KINDS
@@ -226,7 +237,7 @@ def _signals(md: Any, version: int, name: str) -> tuple[tuple[Signal, ...], ...]
         if kind in ("int64", "uint64") and v.causality != "parameter":
             _check_exact(v, name)
         loose.append((v, kind, shape))
-    if ports and not any(v.causality != "parameter" for v, _, _ in loose):
+    if ports and not any(v.causality != "parameter" for v, _, _ in loose) and not clocks:
         raise FMUError(f"FMU {name}: none of its inputs and outputs can be on the bus: {', '.join(skipped)} (the bus "
                        "takes numbers and booleans: FMI 2.0 Real, Integer, Enumeration, Boolean; FMI 3.0 Float64, "
                        "Float32, Int8 to UInt64, Boolean, Enumeration)")
@@ -236,10 +247,13 @@ def _signals(md: Any, version: int, name: str) -> tuple[tuple[Signal, ...], ...]
         for vr in sig.vrs:
             by_vr[vr] = sig
     outputs = tuple(_with_depends(s, md, by_vr) for s in groups if s.kind == "output")
-    order = {**_ORDER, "string": len(_ORDER), "binary": len(_ORDER) + 1}
-    pick = [tuple(sorted((s for s in groups if s.kind == k), key=lambda s: order[s.type]))
-            for k in ("input", "parameter")]
-    outputs = tuple(sorted(outputs, key=lambda s: _ORDER[s.type]))
+    order = {**_ORDER, "string": len(_ORDER), "binary": len(_ORDER) + 1, "clock": len(_ORDER) + 2}
+
+    def key(s: Signal) -> tuple[bool, bool, int]:  # unclocked first, then clocked, then clock ports
+        return s.type == "clock", bool(s.clocks), order[s.type]
+
+    pick = [tuple(sorted((s for s in groups if s.kind == k), key=key)) for k in ("input", "parameter")]
+    outputs = tuple(sorted(outputs, key=key))
     _check_names(pick[0], outputs, pick[1], name)
     return pick[0], outputs, pick[1], skipped
 
@@ -285,9 +299,14 @@ def _group(loose: list[tuple[Any, str, tuple[int, ...]]]) -> list[Signal]:
             count = 1
             for d in shape:
                 count *= d
-            sig = Signal(v.name, _KIND[v.causality], kind, (v.valueReference,), shape, _unit(v),
-                         _start_values(v, kind, count), v.variability == "tunable", v.description or "",
-                         fmi_type=v.type)
+            clocked = tuple(c.valueReference for c in (getattr(v, "clocks", None) or ()))
+            if kind == "clock":
+                sig = Signal(v.name, _KIND[v.causality], kind, (v.valueReference,), (), CLOCK_UNIT, (0.0,), False,
+                             v.description or "", fmi_type="Clock", clocks=(v.valueReference,))
+            else:
+                sig = Signal(v.name, _KIND[v.causality], kind, (v.valueReference,), shape, _unit(v),
+                             _start_values(v, kind, count), v.variability == "tunable", v.description or "",
+                             fmi_type=v.type, clocks=clocked)
         if id(sig) not in seen:
             seen.add(id(sig))
             out.append(sig)

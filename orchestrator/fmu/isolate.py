@@ -36,6 +36,7 @@ from ..kernel.errors import DynabrainError, NonFiniteOutputError
 from ..kernel.module import Capabilities, SetupContext
 from ..kernel.workers import spawn_worker
 from . import errors as fmu_errors
+from .clocks import check_periods
 from .errors import FMUCrashError, FMUError, FMUTimeoutError
 from .info import FmuInfo
 from .module import FMUModuleBase
@@ -133,6 +134,7 @@ class IsolatedFMUModule(FMUModuleBase):
         self._state: SerializedFMUState | None = None
         self._pending: SerializedFMUState | None = None
         self._started = False
+        self._period_ns = 1
         self.restarts: list[str] = []
         """Each restart from scratch (its state lost), as the warning said it."""
         self._t0_ns = 0
@@ -149,7 +151,7 @@ class IsolatedFMUModule(FMUModuleBase):
         self._child = _Child(self.info.label)
         try:
             self._request("open", self.info, self.name, self.CAPABILITIES.can_rollback, str(self._child.dir / "fmu"),
-                          self.start_time, timeout=max(self.call_timeout, START_TIMEOUT_S))
+                          self.start_time, self._period_ns, timeout=max(self.call_timeout, START_TIMEOUT_S))
         except BaseException:
             child, self._child = self._child, None
             if child is not None:
@@ -234,7 +236,7 @@ class IsolatedFMUModule(FMUModuleBase):
             _log.warning("%s", note)
             return
         self._request("init", self._t0_ns, dict(self.params), self._inputs_now())
-        self._request("set_state", self._pending.token, self._pending.data)
+        self._request("set_state", self._pending.token, self._pending.data, self._outputs_now())
         self._state, self._pending = self._pending, None
 
     # -- values ----------------------------------------------------------------------------------------
@@ -246,6 +248,12 @@ class IsolatedFMUModule(FMUModuleBase):
             self._in_values[where] = view.reshape(-1)
         return np.array(self._in_values, dtype=np.float64)
 
+    def _outputs_now(self) -> np.ndarray:
+        """The outputs on the bus: after a restore, the values clocked outputs hold until their next tick."""
+        for view, where in self._scatter:
+            self._out_values[where] = view.reshape(-1)
+        return np.array(self._out_values, dtype=np.float64)
+
     def _write_outputs(self, values: np.ndarray) -> None:
         self._out_values[:] = values
         for view, where in self._scatter:
@@ -253,6 +261,8 @@ class IsolatedFMUModule(FMUModuleBase):
 
     # -- lifecycle -------------------------------------------------------------------------------------
     def setup(self, ctx: SetupContext) -> None:
+        check_periods(self.info.clocks, ctx.period_ns, self.name)
+        self._period_ns = ctx.period_ns
         self._spawn()
 
     def bind(self) -> None:
@@ -286,7 +296,7 @@ class IsolatedFMUModule(FMUModuleBase):
             self._pending = state
             return
         try:
-            self._request("set_state", state.token, state.data)
+            self._request("set_state", state.token, state.data, self._outputs_now())
         except DynabrainError as exc:  # the world is rolling back: never leave it half done
             if self._child is not None:
                 self._drop_child()
@@ -324,7 +334,7 @@ class IsolatedFMUModule(FMUModuleBase):
         clone = IsolatedFMUModule(self.name, self.info, source=self.source, targets=self.targets,
                                   call_timeout=self.call_timeout, start_time=self.start_time)
         clone._param_values = self._param_values
-        clone._t0_ns, clone._started = self._t0_ns, self._started
+        clone._t0_ns, clone._started, clone._period_ns = self._t0_ns, self._started, self._period_ns
         memo[id(self)] = clone
         if self._child is None and self._pending is None:
             return clone
@@ -333,7 +343,7 @@ class IsolatedFMUModule(FMUModuleBase):
         try:
             clone._request("init", self._t0_ns, dict(self.params), self._inputs_now())
             if state is not None:
-                clone._request("set_state", state.token, state.data)
+                clone._request("set_state", state.token, state.data, self._outputs_now())
             clone._state = state
         except BaseException:
             clone.close()

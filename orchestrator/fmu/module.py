@@ -30,6 +30,7 @@ import numpy as np
 
 from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.module import Capabilities, Module, Param, Port, SetupContext
+from .clocks import check_periods
 from .errors import FMUCallError, FMUError
 from .info import DIMENSIONS, FmuInfo, Signal
 from .session import Session
@@ -201,8 +202,11 @@ class FMUModule(FMUModuleBase):
     # -- lifecycle -------------------------------------------------------------------------------------
     def setup(self, ctx: SetupContext) -> None:
         self._dt_ns = ctx.period_ns
+        check_periods(self.info.clocks, ctx.period_ns, self.name)
         self._session = Session(self.info, self.name, rollback=self.CAPABILITIES.can_rollback,
                                 start_time=self.start_time)
+        if self._session.events is not None:
+            self._session.events.period_ns = ctx.period_ns
         self._pool = self._session.pool
         self.bind()
 
@@ -215,7 +219,7 @@ class FMUModule(FMUModuleBase):
         self._views = (self.inp, self.out)  # the session holds addresses into these buffers
         self._fn, self._arg = session.stepper.fn, session.stepper.arg
         self._simple = (self._pool is not None and not self._gather and not self._scatter
-                        and not session.in_typed and not session.out_typed)
+                        and not session.in_typed and not session.out_typed and session.events is None)
         if session.stepper.dt_ns != self._dt_ns:
             session.stepper.set_step(self._dt_ns)
 
@@ -223,7 +227,7 @@ class FMUModule(FMUModuleBase):
         session = self._require("start")
         self._t0 = t_ns / 1e9
         self._copy_in()
-        session.initialize(self._t0, dict(self.params))
+        session.initialize(self._t0, dict(self.params), origin_ns=t_ns)
         self._copy_out()
         self._state = session.capture() if self._pool is not None else None
 
@@ -324,6 +328,8 @@ class FMUModule(FMUModuleBase):
         state = self._session.serialize(self.get_state())
         clone._session = Session(self.info, self.name, rollback=clone.CAPABILITIES.can_rollback,
                                  start_time=self.start_time)
+        if clone._session.events is not None:
+            clone._session.events.period_ns = self._session.events.period_ns
         clone._pool = clone._session.pool
         clone._t0, clone._dt_ns = self._t0, self._dt_ns
         try:

@@ -29,6 +29,7 @@ import numpy as np
 from ..kernel.errors import ModuleError, NonFiniteOutputError
 from .api import FmuApi, make_api
 from .errors import FMUCallError, FMUError, FMUTerminatedError, FMUUnusableError
+from .events import Events
 from .fastpath import CALLS, EARLY_RETURN, NONFINITE, TERMINATE, Stepper, decode
 from .info import BUS_KINDS, EXACT, INT_RANGES, FmuInfo, Signal
 from .states import FMUState, SerializedFMUState, StatePool
@@ -42,14 +43,14 @@ _FMI_TYPE = {"real": "Float64", "float32": "Float32", "int8": "Int8", "uint8": "
 
 
 @dataclass(frozen=True)
-class _Typed:
-    """Variables of one kind other than real, in one direction: their value references, their place
-    in the flat array, the FMU-typed buffer they go through, and each value's variable name."""
+class Group:
+    """Variables of one kind in one direction: their value references, their place in the flat array
+    (a slice, or the positions of clocked variables), the FMU-typed buffer they go through, and each
+    value's variable name."""
 
     kind: str
     vrs: np.ndarray
-    start: int
-    stop: int
+    where: slice | np.ndarray
     buf: np.ndarray
     names: tuple[str, ...]
 
@@ -62,17 +63,36 @@ def _names(signals: list[Signal]) -> tuple[str, ...]:
     return tuple(s.name if not s.shape else f"{s.name}[{i + 1}]" for s in signals for i in range(s.size))
 
 
-def _typed(api: FmuApi, signals: tuple[Signal, ...]) -> tuple[int, list[_Typed]]:
-    """(number of real values, the groups of other kinds after them)."""
+def _typed(api: FmuApi, signals: list[Signal]) -> tuple[int, list[Group]]:
+    """(number of real values, the groups of other kinds after them) of ``signals``, laid out in
+    `BUS_KINDS` order from the start of the flat array."""
     n_real = sum(s.size for s in signals if s.type == "real")
     groups, at = [], n_real
     for kind in BUS_KINDS[1:]:
         sigs = [s for s in signals if s.type == kind]
         n = sum(s.size for s in sigs)
         if n:
-            groups.append(_Typed(kind, _vrs(sigs), at, at + n, np.zeros(n, dtype=api.DTYPES[kind]), _names(sigs)))
+            groups.append(Group(kind, _vrs(sigs), slice(at, at + n), np.zeros(n, dtype=api.DTYPES[kind]),
+                                _names(sigs)))
         at += n
     return n_real, groups
+
+
+def groups_at(api: FmuApi, signals: list[tuple[Signal, int]]) -> list[Group]:
+    """Groups by kind (reals too) of ``signals``, each with its first position in the flat array."""
+    out = []
+    for kind in BUS_KINDS:
+        sigs = [(s, at) for s, at in signals if s.type == kind]
+        if sigs:
+            where = np.array([at + i for s, at in sigs for i in range(s.size)], dtype=np.intp)
+            out.append(Group(kind, _vrs([s for s, _ in sigs]), where, np.zeros(len(where), dtype=api.DTYPES[kind]),
+                             _names([s for s, _ in sigs])))
+    return out
+
+
+def unclocked(signals: tuple[Signal, ...]) -> list[Signal]:
+    """The signals set and read at every step (not clocked variables, not clock ports)."""
+    return [s for s in signals if not s.clocks]
 
 
 class Session:
@@ -99,16 +119,20 @@ class Session:
             self.close()
             raise
         api = self.api
-        self.n_in, self.in_typed = _typed(api, info.inputs)
-        self.n_out, self.out_typed = _typed(api, info.outputs)
+        self.n_in, self.in_typed = _typed(api, unclocked(info.inputs))
+        self.n_out, self.out_typed = _typed(api, unclocked(info.outputs))
         self.n_in_all = sum(s.size for s in info.inputs)
         self.n_out_all = sum(s.size for s in info.outputs)
-        real_in = [s for s in info.inputs if s.type == "real"]
-        real_out = [s for s in info.outputs if s.type == "real"]
+        real_in = [s for s in unclocked(info.inputs) if s.type == "real"]
+        real_out = [s for s in unclocked(info.outputs) if s.type == "real"]
         self.stepper = Stepper(api, _vrs(real_in), self.n_in, _vrs(real_out), self.n_out, no_prior=not rollback)
         self.stepper.set_start_time(start_time)
         self.pool = StatePool(api) if rollback and info.can_get_set else None
         self.params = {s.name: s for s in info.params}
+        self.events = Events(self) if info.clocks else None
+        """Event mode and clocks (FMI 3.0 clocks; see `clocks`), or None."""
+        if self.events is not None:
+            self.stepper.use_python()  # it keeps DoStep's eventHandlingNeeded
         self.bind(np.zeros(self.n_in_all), np.zeros(self.n_out_all))
 
     @property
@@ -124,59 +148,72 @@ class Session:
 
     def write_typed_inputs(self) -> None:
         for g in self.in_typed:
-            values = self.in_values[g.start:g.stop]
-            if g.kind == "boolean":
-                g.buf[...] = values != 0
-            elif g.kind == "float32":
-                if not np.all(np.abs(values) <= FLOAT32_MAX):
-                    self._refuse_input(g, ~(np.abs(values) <= FLOAT32_MAX), "is beyond the range of a Float32")
-                g.buf[...] = values
-            else:
-                whole = np.rint(values)
-                low, high = INT_RANGES[g.kind]
-                fits = (whole >= max(low, -EXACT)) & (whole <= min(high, EXACT))
-                if not fits.all():
-                    self._refuse_input(g, ~fits, f"does not fit {_FMI_TYPE[g.kind]} ({max(low, -EXACT)} to "
-                                       f"{min(high, EXACT)})")
-                g.buf[...] = whole
-            try:
-                self.api.set_values(g.kind, g.vrs, g.buf)
-            except FMUCallError as exc:  # the FMU's own status (a refused value above is not the FMU's)
-                self._failed_call(exc, 3)
-                raise
+            self.write_group(g)
 
-    def _refuse_input(self, g: _Typed, bad: np.ndarray, why: str) -> None:
+    def write_group(self, g: Group) -> None:
+        """Set the inputs of ``g`` from the flat array, converted to their type (refused, naming the
+        variable, when a value does not fit)."""
+        values = self.in_values[g.where]
+        if g.kind == "real":
+            g.buf[...] = values
+        elif g.kind == "boolean":
+            g.buf[...] = values != 0
+        elif g.kind == "float32":
+            if not np.all(np.abs(values) <= FLOAT32_MAX):
+                self._refuse_input(g, values, ~(np.abs(values) <= FLOAT32_MAX), "is beyond the range of a Float32")
+            g.buf[...] = values
+        else:
+            whole = np.rint(values)
+            low, high = INT_RANGES[g.kind]
+            fits = (whole >= max(low, -EXACT)) & (whole <= min(high, EXACT))
+            if not fits.all():
+                self._refuse_input(g, values, ~fits, f"does not fit {_FMI_TYPE[g.kind]} ({max(low, -EXACT)} to "
+                                   f"{min(high, EXACT)})")
+            g.buf[...] = whole
+        try:
+            self.api.set_values(g.kind, g.vrs, g.buf)
+        except FMUCallError as exc:  # the FMU's own status (a refused value above is not the FMU's)
+            self._failed_call(exc, 3)
+            raise
+
+    def _refuse_input(self, g: Group, values: np.ndarray, bad: np.ndarray, why: str) -> None:
         k = int(np.flatnonzero(bad)[0])
-        value = float(self.in_values[g.start + k])
         raise FMUCallError(self.name, f"fmi{self.info.version}Set{_FMI_TYPE[g.kind]}", None,
-                           f"input {g.names[k]} = {value:g} {why}; {self.info.label}")
+                           f"input {g.names[k]} = {float(values[k]):g} {why}; {self.info.label}")
 
     def read_typed_outputs(self) -> None:
         for g in self.out_typed:
-            self.api.get_values(g.kind, g.vrs, g.buf)
-            if g.kind in ("int64", "uint64") and np.any(np.abs(g.buf.astype(np.float64)) > EXACT):
-                k = int(np.flatnonzero(np.abs(g.buf.astype(np.float64)) > EXACT)[0])
-                raise FMUCallError(self.name, f"fmi3Get{_FMI_TYPE[g.kind]}", None,
-                                   f"output {g.names[k]} = {int(g.buf[k])} is beyond 2^53: the bus (float64) holds "
-                                   f"it only rounded; {self.info.label}")
-            if g.kind == "float32" and not np.isfinite(g.buf).all():
-                self.nonfinite(g.buf, [s for s in self.info.outputs if s.type == "float32"])
-            self.out_values[g.start:g.stop] = g.buf
+            self.read_group(g)
 
-    def nonfinite(self, values: np.ndarray, signals: list[Signal]) -> None:
+    def read_group(self, g: Group) -> None:
+        """Get the outputs of ``g`` into the flat array (a 64-bit one beyond 2^53, or a float not
+        finite, raises naming it)."""
+        self.api.get_values(g.kind, g.vrs, g.buf)
+        if g.kind in ("int64", "uint64") and np.any(np.abs(g.buf.astype(np.float64)) > EXACT):
+            k = int(np.flatnonzero(np.abs(g.buf.astype(np.float64)) > EXACT)[0])
+            raise FMUCallError(self.name, f"fmi3Get{_FMI_TYPE[g.kind]}", None,
+                               f"output {g.names[k]} = {int(g.buf[k])} is beyond 2^53: the bus (float64) holds "
+                               f"it only rounded; {self.info.label}")
+        if g.kind in ("real", "float32") and not np.isfinite(g.buf).all():
+            self.nonfinite(g.buf, g.names)
+        self.out_values[g.where] = g.buf
+
+    def nonfinite(self, values: np.ndarray, names: tuple[str, ...]) -> None:
         """Raise `NonFiniteOutputError` for the first value that is not finite (``values``: the outputs
-        of ``signals``, in order). The session checks the outputs it reads, so the world need not
+        ``names`` say, in order). The session checks the outputs it reads, so the world need not
         (`FMUModule` declares ``finite_outputs=False``)."""
-        names = _names(signals)
         k = int(np.flatnonzero(~np.isfinite(values))[0])
         value = float(values[k])
-        port = next(s.name for s in signals if names[k] == s.name or names[k].startswith(f"{s.name}["))
+        port = names[k].split("[", 1)[0]
         where = f" (element {names[k]})" if names[k] != port else ""
         raise NonFiniteOutputError(self.name, "step", None, f"output {port!r} is {'NaN' if np.isnan(value) else value}"
                                    f"{where}; outputs must be finite numbers ({self.info.label})", port=port)
 
     def read_outputs(self) -> None:
-        self.api.get_values("real", self.stepper.out_vrs, self.out_values[:self.n_out])
+        reals = self.out_values[:self.n_out]
+        self.api.get_values("real", self.stepper.out_vrs, reals)
+        if not np.isfinite(reals).all():
+            self.nonfinite(reals, _names([s for s in unclocked(self.info.outputs) if s.type == "real"]))
         self.read_typed_outputs()
 
     def write_inputs(self) -> None:
@@ -204,23 +241,26 @@ class Session:
                 api.set_values(kind, refs, np.array(vals, dtype=api.DTYPES[kind]))
 
     # -- lifecycle -----------------------------------------------------------------------------------
-    def initialize(self, t0: float, params: dict[str, Any]) -> None:
+    def initialize(self, t0: float, params: dict[str, Any], origin_ns: int | None = None) -> None:
         """Parameters, then initialization mode at ``t0`` (the world's time, in seconds: the FMU's is
-        ``t0 + start_time``) with the current inputs; outputs read."""
+        ``t0 + start_time``; ``origin_ns`` the same in nanoseconds) with the current inputs; the events
+        at ``t0`` (clocks that tick there); outputs read."""
         api = self.api
         self.set_params(params)
         api.enter_init(t0 + self.start_time)
         self.write_inputs()
         api.exit_init()
         self.initialized = True
+        if self.events is not None:
+            self.events.start(round(t0 * 1e9) if origin_ns is None else origin_ns)
         self.read_outputs()
 
-    def reinitialize(self, t0: float, params: dict[str, Any]) -> None:
+    def reinitialize(self, t0: float, params: dict[str, Any], origin_ns: int | None = None) -> None:
         """Reset and initialize again (a fixed parameter changed before the world ran)."""
         self.api.reset()
         self.initialized = False
         self.unusable = None
-        self.initialize(t0, params)
+        self.initialize(t0, params, origin_ns)
 
     def step(self, t_ns: int, dt_ns: int, save: bool) -> FMUState | None:
         """One step from ``t_ns`` (the fast path is inlined in `FMUModule.step`; this is the general one)."""
@@ -232,10 +272,23 @@ class Session:
         if self.in_typed:
             self.write_typed_inputs()
         pool = self.pool if save else None
+        events = self.events
+        if events is not None:  # the state is taken after the events at the step's end
+            events.before_step()
+            pool = None
         slot = pool.take() if pool is not None else -1
         rc = stepper.fn(stepper.arg, t_ns, pool.address(slot) if pool is not None else 0)
         if rc:
             self.failed(rc, slot, t_ns)
+        if events is not None:
+            try:
+                if self.out_typed:
+                    self.read_typed_outputs()
+                events.handle(t_ns + dt_ns, bool(stepper.event_needed))
+            except ModuleError as exc:
+                self._failed_call(exc, 3)
+                raise
+            return self.pool.capture() if save and self.pool is not None else None
         if self.out_typed:
             try:
                 self.read_typed_outputs()
@@ -270,7 +323,8 @@ class Session:
                 raise FMUTerminatedError(self.name, call, None, f"{self.info.label} asked to end the simulation{at}"
                                          + (" (" + " | ".join(said) + ")" if said else ""))
             if status == NONFINITE:
-                self.nonfinite(self.out_values[:self.n_out], [s for s in self.info.outputs if s.type == "real"])
+                self.nonfinite(self.out_values[:self.n_out], _names([s for s in unclocked(self.info.outputs)
+                                                                     if s.type == "real"]))
             if status == EARLY_RETURN:
                 raise FMUCallError(self.name, call, None, f"{self.info.label} returned early from a step it was not "
                                    "allowed to cut short")

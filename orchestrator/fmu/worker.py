@@ -39,9 +39,12 @@ class Worker:
         self.trace[:TRACE_SIZE] = call.encode()[:TRACE_SIZE].ljust(TRACE_SIZE, b"\0")
 
     # -- requests ------------------------------------------------------------------------------------
-    def open(self, info: FmuInfo, name: str, rollback: bool, folder: str, start_time: float = 0.0) -> tuple[int, int]:
+    def open(self, info: FmuInfo, name: str, rollback: bool, folder: str, start_time: float = 0.0,
+             period_ns: int = 1) -> tuple[int, int]:
         self.mark("load")
         self.session = s = Session(info, name, rollback=rollback, folder=folder, start_time=start_time)
+        if s.events is not None:
+            s.events.period_ns = period_ns
         s.api.on_call = self.mark
         s.stepper.use_python(self.mark)
         s.bind(np.zeros(s.n_in_all), np.zeros(s.n_out_all))
@@ -50,7 +53,7 @@ class Worker:
     def init(self, t0_ns: int, params: dict[str, Any], inputs: np.ndarray) -> tuple[np.ndarray, bytes | None]:
         s = self.session
         s.in_values[:] = inputs
-        s.initialize(t0_ns / 1e9, params)
+        s.initialize(t0_ns / 1e9, params, origin_ns=t0_ns)
         return s.out_values.copy(), self._state(None)
 
     def step(self, t_ns: int, dt_ns: int, inputs: np.ndarray) -> tuple[np.ndarray, bytes | None]:
@@ -64,13 +67,17 @@ class Worker:
         s = self.session
         if reinit:
             s.in_values[:] = inputs
-            s.reinitialize(t0_ns / 1e9, all_params)
+            s.reinitialize(t0_ns / 1e9, all_params, origin_ns=t0_ns)
         else:
             s.set_params(values)
         return s.out_values.copy(), self._state(None)
 
-    def set_state(self, token: str, data: bytes) -> None:
+    def set_state(self, token: str, data: bytes, outputs: np.ndarray | None = None) -> None:
+        """Restore a state; ``outputs``: the outputs on the parent's bus with it (clocked outputs hold
+        their values between ticks, and are not read from the FMU at other steps)."""
         self.keep = self.session.restore(SerializedFMUState(token, data))
+        if outputs is not None:
+            self.session.out_values[:] = outputs
 
     def close(self) -> None:
         self.keep = None
