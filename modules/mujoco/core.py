@@ -45,13 +45,14 @@ Choices (see also `mujoco.scene`):
   closed fork left when there is some; the compiled model is shared until either core changes a
   run-time parameter, which copies it first (`ModelShare`, `CompiledScene.own_model`);
 - modules that need MuJoCo's own model and data (native sensors, contacts) read them through
-  `MujocoCore.mj` (a `MujocoView`), through `mujoco.access.MujocoLink`.
+  `MujocoCore.mj` (a `MujocoView`), through `mujoco.access.MujocoLink`;
+- MuJoCo's warnings go to the ``dynabrain.mujoco`` log, the first of each kind only, the rest counted
+  (`mujoco.warning_log`; `dynabrain run` prints how many were not shown).
 """
 
 from __future__ import annotations
 
 import copy
-import logging
 import operator
 import threading
 import weakref
@@ -77,18 +78,9 @@ from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDiverged
 from dynabrain.orchestrator.kernel.module import Param, Port, SetupContext
 
 from . import scene as ms
+from . import warning_log
 
-_log = logging.getLogger("dynabrain.mujoco")
-
-
-def _warning_to_log(message: str) -> None:
-    _log.warning("MuJoCo: %s", message.strip())
-
-
-if mujoco.get_mju_user_warning() is None:
-    # MuJoCo's default appends warnings to MUJOCO_LOG.TXT in the working folder; the core writes no
-    # files, and divergence is detected from the data's warning counters, which this keeps intact.
-    mujoco.set_mju_user_warning(_warning_to_log)
+warning_log.install()  # MuJoCo's warnings to the log, each kind once, counted (no MUJOCO_LOG.TXT)
 
 _S = mujoco.mjtState
 STATE = int(_S.mjSTATE_INTEGRATION) & ~int(_S.mjSTATE_QFRC_APPLIED) & ~int(_S.mjSTATE_XFRC_APPLIED)

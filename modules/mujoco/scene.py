@@ -66,6 +66,74 @@ def fail(core: str, message: str) -> DynabrainError:
     return DynabrainError(f"{ENGINE} core {core!r}: {message}")
 
 
+# -- size: how many bodies, and MuJoCo's memory for a step -------------------------------------------------
+MAX_BODIES = 65_535
+"""The most bodies MuJoCo can simulate: its broad phase (sweep and prune) numbers bodies in 16 bits and
+fails above this. A scene with more is refused when the core is made."""
+ARENA_BASE = 64 * 2**20
+"""Bytes of MuJoCo's arena (contacts, constraints, the step's scratch) every model gets (`arena_bytes`)."""
+ARENA_PER_DOF = 40 * 1024
+"""... and per degree of freedom or equality: 1000 boxes piled 10 x 10 x 10 (one island of 6000 dofs,
+14,000 contacts) use 20 KiB a dof at most."""
+ARENA_PER_GEOM = 16 * 1024
+"""... and per geom: its contacts (a box resting on the floor has 4, about 2 KiB with their constraints)."""
+
+
+class ModelSize(NamedTuple):
+    """What sizes MuJoCo's memory for a step: bodies, geoms, degrees of freedom, equalities."""
+
+    nbody: int = 0
+    ngeom: int = 0
+    nv: int = 0
+    neq: int = 0
+
+    def __add__(self, other):  # type: ignore[override]
+        return ModelSize(*(a + b for a, b in zip(self, other, strict=True)))
+
+
+_DOFS = {"free": 6, "hinge": 1, "slide": 1, "fixed": 0}
+
+
+def _bodies_size(bodies: Sequence[BodySpec]) -> ModelSize:
+    nv = sum(0 if b.shape == "plane" else
+             _DOFS.get(b.joint.kind if b.joint is not None else ("free" if b.parent is None else "fixed"), 6)
+             for b in bodies)
+    return ModelSize(nbody=len(bodies), ngeom=len(bodies), nv=nv)
+
+
+def _spec_size(spec: mujoco.MjSpec) -> ModelSize:
+    dofs = {mujoco.mjtJoint.mjJNT_FREE: 6, mujoco.mjtJoint.mjJNT_BALL: 3}
+    return ModelSize(nbody=len(spec.bodies) - 1, ngeom=len(spec.geoms),
+                     nv=sum(dofs.get(j.type, 1) for j in spec.joints), neq=len(spec.equalities))
+
+
+def _check_bodies(core: str, n: int) -> None:
+    if n > MAX_BODIES:
+        raise fail(core, f"{n} bodies: MuJoCo simulates at most {MAX_BODIES} (its broad phase numbers bodies "
+                   "in 16 bits)")
+
+
+def arena_bytes(size: ModelSize) -> int:
+    """MuJoCo's memory for one step of a model of ``size`` (its ``<size memory>``): what its broad phase
+    takes, two int lists of every pair of bodies (4 n^2 bytes, freed before the constraints are made; only
+    the pages it writes are ever touched), and room for the contacts and constraints linear in the model:
+    `ARENA_BASE`, `ARENA_PER_DOF`, `ARENA_PER_GEOM`."""
+    pairs = 4 * (size.nbody + 1) ** 2
+    return pairs + ARENA_BASE + ARENA_PER_DOF * (size.nv + size.neq) + ARENA_PER_GEOM * size.ngeom
+
+
+def _size_arena(spec: mujoco.MjSpec, size: ModelSize) -> None:
+    """Give the spec `arena_bytes` of memory where MuJoCo's own rule would give more. MuJoCo's rule, for a
+    model that sets none, grows with the square of the degrees of freedom (at least 40 (500 + nv + neq)^2
+    bytes: 1.7 GB for 1000 free boxes, 146 GB for 10,000, which no machine allocates); a model file's own
+    ``<size memory>`` (or ``nstack``) is kept."""
+    if spec.memory != -1 or spec.nstack != -1:
+        return
+    ours = arena_bytes(size)
+    if ours < 40 * (500 + size.nv + size.neq) ** 2:
+        spec.memory = ours
+
+
 # -- specs ----------------------------------------------------------------------------------------------
 _BASE_LOCK = threading.Lock()
 
@@ -85,8 +153,14 @@ class SpecSource:
         self.geom_body = _geom_owners(self.base) if self.base is not None else {}
         """Geom name -> the body it belongs to, for the model file's geoms (a primitive's geom is
         named as its body)."""
+        self.base_size = _spec_size(self.base) if self.base is not None else ModelSize()
+        """The model file's size (nothing for a primitive scene: its bodies say)."""
+        _check_bodies(core, self.base_size.nbody + len(scene.bodies))
+        self._first: mujoco.MjSpec | None = None
+        """The spec of the scene as it is, made to check the scene at construction and kept for the
+        first structure that asks for it (building a spec costs MuJoCo time quadratic in the bodies)."""
         if self.base is None:
-            self.spec({})  # check the scene now: errors belong to construction
+            self._first = self.spec({})[0]  # check the scene now: errors belong to construction
 
     def bodies(self, scene_key: tuple = ((), ())) -> tuple[BodySpec, ...]:
         """The primitives of the scene with the bodies added and removed of ``scene_key``."""
@@ -96,16 +170,22 @@ class SpecSource:
         """A fresh spec with the bodies of ``bake`` frozen (pose in parent, or None: keep), and the
         names of the joints that froze; with the bodies added and removed of ``scene_key``."""
         if self.base is None:
-            spec = _finish(self.core, _spec_from_bodies(self.core, self.bodies(scene_key), bake), self.scene)
+            first, self._first = self._first, None
+            if first is not None and not bake and scene_key == ((), ()):
+                return first, set()
+            bodies = self.bodies(scene_key)
+            _check_bodies(self.core, len(bodies))
+            spec = _finish(self.core, _spec_from_bodies(self.core, bodies, bake), self.scene, named=True)
             removed: set[str] = set()  # frozen bodies were built without joints
         else:
+            _check_bodies(self.core, self.base_size.nbody + len(scene_key[0]))
             with _BASE_LOCK:  # forks share the base and may compile in threads
                 spec = self.base.copy()
             for b in scene_key[0]:  # bodies added at run time (only those: model bodies are not removed)
                 if b.name in {x.name for x in spec.bodies}:
                     raise fail(self.core, f"{_where(b)}a body of that name exists already")
                 _add_body(self.core, spec.worldbody, b, b.name in bake, bake.get(b.name),
-                          degree=bool(spec.compiler.degree)).fuse = 0
+                          degree=bool(spec.compiler.degree))
             removed = set()
             for name, rel in bake.items():
                 removed |= _bake(spec.body(name), rel, spec)
@@ -113,12 +193,24 @@ class SpecSource:
             spec.body(name).fuse = 1
         return spec, removed
 
+    def size(self, edits: Edits) -> ModelSize:
+        """An upper bound of the size of the model of ``edits`` (frozen bodies counted as moving)."""
+        if self.base is None:
+            size = _bodies_size(self.bodies(edits.scene_key()))
+        else:
+            size = self.base_size + _bodies_size(edits.scene_key()[0])
+        sliders = sum(w.kind == "slider" for w in edits.welds)  # a carriage body on a slide joint each
+        return size + ModelSize(nbody=sliders, nv=sliders, neq=2 * len(edits.welds))
 
-def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec) -> mujoco.MjSpec:
+
+def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec, *, named: bool = False) -> mujoco.MjSpec:
+    """Options, names and no fusing; ``named``: the spec names everything already (a primitive scene:
+    MuJoCo's lists of every joint and geom cost time quadratic in their number)."""
     _apply_options(core, spec, scene.options or {})
-    _name_everything(spec)
-    for body in spec.bodies:
-        body.fuse = 0  # only frozen bodies are fused (see build_structure)
+    if not named:
+        _name_everything(spec)
+        for body in spec.bodies:
+            body.fuse = 0  # only frozen bodies are fused (see build_structure)
     spec.compiler.fusestatic = False
     return spec
 
@@ -174,6 +266,7 @@ def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel:
                    f"(supported: {', '.join(SHAPES)})" + did_you_mean(b.shape, _GEOMS))
     pos, quat = (rel[:3], rel[3:]) if rel is not None else (b.pos, b.quat)
     body = parent.add_body(name=b.name, pos=list(pos), quat=list(quat))
+    body.fuse = 0  # only frozen bodies are fused (see build_structure)
     geom = body.add_geom(name=b.name, type=_GEOMS[b.shape], size=_geom_size(core, b),
                          rgba=list(b.color))
     if b.mass is not None:
@@ -295,13 +388,16 @@ def make_layout(model: mujoco.MjModel) -> Layout:
         if p:
             subtree[names[p - 1]].extend(subtree[names[i - 1]])
     joints = tuple(model.joint(j).name for j in range(model.njnt))
-    body_joints = {n: tuple(joints[j] for j in range(model.njnt) if model.jnt_bodyid[j] == i + 1)
-                   for i, n in enumerate(names)}
-    free = frozenset(names[model.jnt_bodyid[j] - 1] for j in range(model.njnt)
-                     if model.jnt_type[j] == int(mujoco.mjtJoint.mjJNT_FREE))
+    jnt_body, jnt_type = model.jnt_bodyid.tolist(), model.jnt_type.tolist()
+    of_body: dict[int, list[str]] = {}
+    for j, b in enumerate(jnt_body):
+        of_body.setdefault(b, []).append(joints[j])
+    body_joints = {n: tuple(of_body.get(i + 1, ())) for i, n in enumerate(names)}
+    free_type = int(mujoco.mjtJoint.mjJNT_FREE)
+    free = frozenset(names[jnt_body[j] - 1] for j in range(model.njnt) if jnt_type[j] == free_type)
     hinge, slide = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
-    qj = [j for j in range(model.njnt) if model.jnt_type[j] in (hinge, slide)]
-    qunits = tuple(("rad", "N*m") if model.jnt_type[j] == hinge else ("m", "N") for j in qj)
+    qj = [j for j in range(model.njnt) if jnt_type[j] in (hinge, slide)]
+    qunits = tuple(("rad", "N*m") if jnt_type[j] == hinge else ("m", "N") for j in qj)
     sensors = tuple((model.sensor(s).name, int(model.sensor_dim[s]), int(model.sensor_adr[s]))
                     for s in range(model.nsensor) if not model.sensor(s).name.startswith(VEL_PREFIX))
     return Layout(bodies=names, parents=parents,
@@ -363,6 +459,7 @@ def build_structure(core: str, source: SpecSource, edits: Edits) -> tuple[mujoco
     """Compile the structure ``edits``; return it and its moving bodies."""
     spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen for b in entry.bodies},
                                 edits.scene_key())
+    _size_arena(spec, source.size(edits))
     if removed:
         _prune(spec, removed)
     anchors = _made_joints(spec, edits.welds)

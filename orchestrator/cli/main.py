@@ -101,7 +101,16 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
     finally:
         world.close()  # also on Ctrl-C: observers (the log) are closed and stay readable
     _summary(result, history)
+    _engine_warnings()
     raise typer.Exit(0 if result.ok else 1)
+
+
+def _engine_warnings() -> None:
+    """How many of MuJoCo's warnings the run did not show (each kind is logged once), once per run."""
+    warning_log = sys.modules.get("dynabrain.modules.mujoco.warning_log")  # (loaded with the MuJoCo core)
+    line = warning_log.summary() if warning_log is not None else None
+    if line and not _quiet:
+        err_console.print(line, markup=False)
 
 
 def _summary(result: RunResult, history: str) -> None:

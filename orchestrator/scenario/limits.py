@@ -8,12 +8,15 @@ constants below bound them further, in SI units. The pydantic field types at the
 from __future__ import annotations
 
 import math
+import os
+import re
 from typing import Annotated, Any
 
 import numpy as np
 from pydantic import PlainValidator
 
-from ..kernel.errors import UnitError
+from ..kernel.errors import DynabrainError, UnitError
+from ..kernel.history import parse_bytes
 from ..kernel.units import NS_PER_S, parse_duration_ns
 
 MAX_NAME = 200
@@ -32,14 +35,59 @@ MAX_SUBSTEPS = 10_000
 """The most physics steps per module step."""
 MAX_MAGNITUDE = 1e15
 """The largest magnitude of any other number: module parameters, stiffness, damping, event values."""
-MAX_GRID = 10_000
-"""The most copies one ``grid`` makes."""
+MAX_BODIES = 10_000
+"""The most bodies a scene has: its shapes, each copy a ``grid`` makes, each body of a model file.
+Compiling a physics model costs time that grows with the square of its free bodies (MuJoCo works out
+each body's inertia over all the model's degrees of freedom: 1,000 boxes take 0.1 s, 10,000 about 11 s),
+so a larger scene is refused before anything is made."""
+MAX_GRID = MAX_BODIES
+"""The most copies one ``grid`` makes (as many as a scene holds)."""
 
 CORE_LIMITS: dict[str, tuple[float, float]] = {
     "friction": (0.0, MAX_FRICTION), "restitution": (0.0, 1.0), "gravity": (-MAX_GRAVITY, MAX_GRAVITY),
     "substeps": (0, MAX_SUBSTEPS),
 }
 """Ranges of the physics core's parameters (``core:`` and ``set: {core.<name>: ...}``), both ends included."""
+
+
+def scene_bodies(scene: Any) -> int:
+    """How many bodies the ``scene:`` list makes, counted without making them: one per item, a grid's
+    ``nx * ny`` (a grid of more than `MAX_GRID` copies counts 0: the scene's parser refuses it on its
+    own line). What is malformed counts 1; the parser says what is wrong with it."""
+    if not isinstance(scene, list):
+        return 0
+    total = 0
+    for item in scene:
+        fields = item.get("grid") if isinstance(item, dict) and len(item) == 1 else None
+        count = fields.get("count") if isinstance(fields, dict) else None
+        if (isinstance(count, list) and len(count) == 2
+                and all(isinstance(c, int) and not isinstance(c, bool) and c >= 1 for c in count)):
+            total += count[0] * count[1] if count[0] * count[1] <= MAX_GRID else 0
+        else:
+            total += 1
+    return total
+
+
+_BODY_TAG = {".urdf": re.compile(rb"<link[\s/>]"), "": re.compile(rb"<body[\s/>]")}
+
+
+def model_file_bodies(path: str) -> int:
+    """How many bodies a model file declares (``<body>`` elements of MJCF, ``<link>`` of URDF), counted in
+    its text before the engine reads it; 0 when it cannot be read (the engine says why). Included files
+    and replicated elements are not counted."""
+    try:
+        with open(path, "rb") as f:
+            text = f.read()
+    except OSError:
+        return 0
+    return len(_BODY_TAG.get(os.path.splitext(path)[1].lower(), _BODY_TAG[""]).findall(text))
+
+
+def too_many_bodies(n: int) -> str | None:
+    """What is wrong with a scene of ``n`` bodies, or None."""
+    if n <= MAX_BODIES:
+        return None
+    return f"{n} bodies: a scene has at most {MAX_BODIES} (MAX_BODIES), grids counted copy by copy"
 
 
 def bounded(value: float, what: str, low: float | None = None, high: float | None = None) -> float:
@@ -127,6 +175,13 @@ def _realtime(value: Any) -> bool | float:
     return bounded(float(value), "the real-time factor", 1e-6, 1e6)
 
 
+def _byte_size(value: Any) -> int:
+    try:
+        return parse_bytes(value, "the history budget")
+    except DynabrainError as exc:
+        raise ValueError(str(exc)) from None
+
+
 Duration = Annotated[str | int | float, _duration(positive=False)]
 """A time from the start: ``2ms``, ``1.5s``, seconds as a number; at least 0, at most `MAX_DURATION_S`."""
 PositiveDuration = Annotated[str | int | float, _duration(positive=True)]
@@ -135,3 +190,5 @@ Name = Annotated[str, PlainValidator(_name)]
 """A name: a non-empty string of at most `MAX_NAME` characters."""
 Realtime = Annotated[bool | float, PlainValidator(_realtime)]
 """``true``, ``false`` or a positive speed factor."""
+ByteSize = Annotated[int | str, PlainValidator(_byte_size)]
+"""A memory size in bytes: a whole number, ``2GiB``, ``500MB``, or a share of the machine's memory (``25%``)."""

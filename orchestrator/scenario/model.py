@@ -16,15 +16,27 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..kernel.errors import DynabrainError, Problem, ScenarioError, UnitError
+from ..kernel.history import format_bytes, projected_state_bytes
 from ..kernel.module import Module
 from ..kernel.plugins import resolve_class, resolve_core
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import format_duration, parse_duration_ns
 from ..kernel.world import World, as_connection
 from ..kernel.yamlsrc import Path, YamlSource, read_yaml
+from . import limits
 from .events import EVENT_KINDS, EventCfg, Timeline, build_event
 from .expect import Expectation, check_names
-from .limits import CORE_LIMITS, Duration, Name, PositiveDuration, Realtime, check_magnitudes, param_problem, short
+from .limits import (
+    CORE_LIMITS,
+    ByteSize,
+    Duration,
+    Name,
+    PositiveDuration,
+    Realtime,
+    check_magnitudes,
+    param_problem,
+    short,
+)
 from .make import ModuleSpecError, make_module
 from .scene import parse_scene
 
@@ -43,6 +55,8 @@ class WorldCfg(_Strict):
     seed: Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)] = 0
     history: Annotated[int, Field(strict=True, ge=0)] = 1000
     """How many ticks `backtick` can go back."""
+    history_budget: ByteSize | None = None
+    """The most memory the history may hold when full (``2GiB``, ``25%``); default: `kernel.history.default_budget`."""
     realtime: Realtime = False
 
 
@@ -303,9 +317,12 @@ class _Builder:
             self.report(("world", "duration"), f"the duration ({format_duration(self.sc.duration_ns)}) is not a "
                                                f"whole number of {cfg.step} steps")
         world = World(m.name, step=step, seed=cfg.seed, history=cfg.history)
+        if cfg.history_budget is not None:
+            world.history.budget = cfg.history_budget
         self._add_core(world, cfg)
         self._add_modules(world)
         self._connect(world, m.connect, ("connect",))
+        self._history_memory(world)
         self._select(world)
         self._events(world)
         self._expectations(world)
@@ -335,7 +352,14 @@ class _Builder:
         except DynabrainError as exc:
             self.report(("world", "core"), str(exc))
             return
+        too_many = limits.too_many_bodies(limits.scene_bodies(m.scene))  # (before a body is made)
+        if too_many:
+            self.report(("scene",), too_many)
+            return
         scene, scene_problems = parse_scene(m.scene, self.src, self.sc.dir, cfg.core)
+        too_many = limits.too_many_bodies(limits.model_file_bodies(scene.model)) if scene.model else None
+        if too_many:
+            scene_problems.append(self.src.problem(("scene", "model"), f"{scene.model}: {too_many}"))
         self.problems += scene_problems
         params = self._core_params(cls)
         if scene_problems:
@@ -348,6 +372,18 @@ class _Builder:
         except (ValueError, ArithmeticError) as exc:  # the engine's library refusing the scene (a model file
             # it cannot read: MuJoCo's XML errors are ValueErrors); anything else is a bug, and shows as one
             self.report(("scene",), f"the {cfg.core} core cannot load the scene: {type(exc).__name__}: {exc}")
+
+    def _history_memory(self, world: World) -> None:
+        """Refuse a history whose memory when full, projected from the modules, is above its budget,
+        naming the module that makes a state large when one does."""
+        try:
+            sizes = projected_state_bytes(world.modules.values())
+            per_state = sum(sizes.values())
+            name, largest = max(sizes.items(), key=lambda item: item[1])
+            what = f"; the module {name!r} holds {format_bytes(largest)} of each" if 2 * largest > per_state else ""
+            world.history.check(per_state, what)
+        except DynabrainError as exc:
+            self.report(("world", "history"), str(exc))
 
     def _core_params(self, cls: type) -> dict[str, Any]:
         """The ``core:`` parameters whose values are good (the others are reported and left out)."""
