@@ -55,7 +55,7 @@ def test_a_scene_above_max_bodies_is_refused_before_a_body_is_made(tmp_path, mon
                      + _grid(100, 100, "b"))
     (problem,) = _problems(path)
     assert problem.line == 3 and problem.field == "scene"
-    assert "20001 bodies" in problem.message and f"at most {limits.MAX_BODIES} (MAX_BODIES)" in problem.message
+    assert "20000 bodies" in problem.message and f"at most {limits.MAX_BODIES} (MAX_BODIES)" in problem.message
     done = CliRunner().invoke(main.app, ["check", str(path)])
     assert done.exit_code == 2 and "MAX_BODIES" in done.output
 
@@ -65,7 +65,7 @@ def test_the_grid_limit_is_the_scene_limit(tmp_path):
     path = _scenario(tmp_path, "name: s\nscene:\n  - plane: {name: floor}\n" + _grid(101, 100))
     (problem,) = _problems(path)
     assert problem.line == 4 and "MAX_GRID" in problem.message  # the grid, on its own line
-    assert limits.scene_bodies([{"plane": {}}, {"grid": {"count": [100, 100]}}, {"box": {}}]) == 10_002
+    assert limits.scene_bodies([{"plane": {}}, {"grid": {"count": [100, 100]}}, {"box": {}}]) == 10_001
 
 
 def test_a_model_file_above_max_bodies_is_refused_before_the_engine_reads_it(tmp_path, monkeypatch):

@@ -36,7 +36,7 @@ MAX_SUBSTEPS = 10_000
 MAX_MAGNITUDE = 1e15
 """The largest magnitude of any other number: module parameters, stiffness, damping, event values."""
 MAX_BODIES = 10_000
-"""The most bodies a scene has: its shapes, each copy a ``grid`` makes, each body of a model file.
+"""The most bodies a scene has: its shapes but planes, each copy a ``grid`` makes, each body of a model file.
 Compiling a physics model costs time that grows with the square of its free bodies (MuJoCo works out
 each body's inertia over all the model's degrees of freedom: 1,000 boxes take 0.1 s, 10,000 about 11 s),
 so a larger scene is refused before anything is made."""
@@ -51,13 +51,15 @@ CORE_LIMITS: dict[str, tuple[float, float]] = {
 
 
 def scene_bodies(scene: Any) -> int:
-    """How many bodies the ``scene:`` list makes, counted without making them: one per item, a grid's
-    ``nx * ny`` (a grid of more than `MAX_GRID` copies counts 0: the scene's parser refuses it on its
-    own line). What is malformed counts 1; the parser says what is wrong with it."""
+    """How many bodies the ``scene:`` list makes, counted without making them: one per item but a plane
+    (static ground), a grid's ``nx * ny`` (a grid of more than `MAX_GRID` copies counts 0: the scene's
+    parser refuses it on its own line). What is malformed counts 1; the parser says what is wrong with it."""
     if not isinstance(scene, list):
         return 0
     total = 0
     for item in scene:
+        if isinstance(item, dict) and len(item) == 1 and "plane" in item:
+            continue
         fields = item.get("grid") if isinstance(item, dict) and len(item) == 1 else None
         count = fields.get("count") if isinstance(fields, dict) else None
         if (isinstance(count, list) and len(count) == 2
