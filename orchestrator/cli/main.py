@@ -180,12 +180,13 @@ def check(scenario: Path = typer.Argument(..., help="scenario YAML file")) -> No
 
 def _register_plugins() -> None:
     """Command groups that live in their own files (FMU authoring, logs, the Zenoh bridge)."""
-    from . import examples, fmu, log, serve
+    from . import examples, fmu, log, serve, ssp
 
     fmu.register(app)
     log.register(app)
     serve.register(app)
     examples.register(app)
+    ssp.register(app)
 
 
 _register_plugins()
