@@ -3,14 +3,19 @@
 The world: the humanoid "kid" (23 motors, 29 DoF) standing on the earthquake floor (2 more DoF),
 with encoders, the servo (PD, torque limits, an angle-vector program), force/torque sensors at both
 ankles, an accelerometer, a gyro, the ZMP sensor (every 10 ms) and the moving floor, all through the
-kernel: the bus, the schedule, history (a state saved every tick) on.
+kernel: the bus, the schedule, history on at the default depth (1000 ticks), twice: a state saved
+every tick (the default), and keyframes every `KEYFRAMES` ticks (`World(keyframe_every=...)`: the
+ticks between are stepped again when a backtick goes to one).
 
 The baseline: one `mj_step` per tick of the same compiled model, with the same PD control, the same
 floor drive and the same sensor reads computed inline in a Python loop (the ZMP with the same
 functions, every 10 ms), and nothing else.
 
-Printed: both step times, their ratio (target: at most 1.3), the real-time factor, and the paper's
-figure for scale (EusDyna on ODE: 0.74 s of computing per simulated second of a humanoid).
+Printed: the step times (mj_step alone, the raw loop, both worlds, interleaved best of 7), the ratios
+orchestrated / raw (target: at most 1.10), the real-time factor, the paper's figure for scale (EusDyna
+on ODE: 0.74 s of computing per simulated second of a humanoid); what a backtick(1) costs either way
+(the trade keyframes make); and where an orchestrated tick goes: each module's step, the history
+entry and its parts, the finite-output check, and the rest of the kernel.
 
 Run: ``.venv/bin/python bench/humanoid.py``
 """
@@ -20,6 +25,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
@@ -41,13 +47,15 @@ POSE = {"l_hip_pitch": -15, "r_hip_pitch": -15, "l_knee": 30, "r_knee": 30, "l_a
         "r_ankle_pitch": -15, "l_shoulder_roll": 10, "r_shoulder_roll": -10, "l_elbow": -30, "r_elbow": -30}
 FLOOR = {"amplitude": 0.01, "frequency": 0.3, "tilt_amplitude": math.radians(3), "tilt_frequency": 0.2, "ramp": 1.0}
 ZMP_EVERY = 10e-3
-HISTORY = 1000  # ticks of history kept (the World default): each tick saves a state
+HISTORY = 1000  # ticks of history kept (the World default)
+KEYFRAMES = 4  # the keyframed world's `keyframe_every`
+TARGET = 1.10
 
 
-def orchestrated(step: str) -> World:
+def orchestrated(step: str, keyframe_every: int = 1) -> World:
     """The world of the benchmark, settled for a second."""
     core = MujocoCore("core", SceneSpec(model=str(MODEL)), friction=1.0)
-    world = World("bench", step=step, history=HISTORY, core=core)
+    world = World("bench", step=step, history=HISTORY, core=core, keyframe_every=keyframe_every)
     world.add_module(Encoders("enc"))
     world.add_module(Servo("servo", sequence=[{"pose": POSE, "duration": "0.5s"}]),
                      connect=[("enc.q", "servo.q"), ("enc.qd", "servo.qd"), ("servo.ctrl", "core.ctrl")])
@@ -128,7 +136,7 @@ class RawLoop:
 
 
 def measure(step: str, ticks: int = 1000) -> None:
-    world = orchestrated(step)
+    world, keyed = orchestrated(step), orchestrated(step, KEYFRAMES)
     raw, bare = RawLoop(world), RawLoop(world)
     dt = world.dt_ns * 1e-9
     nv = raw.m.nv
@@ -143,26 +151,55 @@ def measure(step: str, ticks: int = 1000) -> None:
                 mujoco.mj_setState(bare.m, bare.d, standing, STATE)
             mujoco.mj_step(bare.m, bare.d)
 
-    t_step, t_raw, t_world = (t / ticks for t in best_of_each([step_only, lambda: raw.run(ticks),
-                                                          lambda: world.tick(ticks)]))
-    ratio = t_world / t_raw
-    standing = world.core.body_pose("pelvis")[0][2] > 0.25
+    t_step, t_raw, t_world, t_keyed = (t / ticks for t in best_of_each(
+        [step_only, lambda: raw.run(ticks), lambda: world.tick(ticks), lambda: keyed.tick(ticks)]))
+    standing = world.core.body_pose("pelvis")[0][2] > 0.25 and keyed.core.body_pose("pelvis")[0][2] > 0.25
     print(f"   step {step} ({nv} DoF, {raw.m.nu} motors, {raw.d.ncon} contacts), "
           f"robot {'standing' if standing else 'FALLEN'}:")
     print(f"     mj_step alone (same stance):      {t_step * 1e6:8.1f} us")
     print(f"     raw loop (same work, inline):     {t_raw * 1e6:8.1f} us")
-    print(f"     orchestrated (9 modules, history): {t_world * 1e6:7.1f} us")
-    print(f"     ratio orchestrated / raw:         {ratio:8.2f}   target <= 1.3: {'met' if ratio <= 1.3 else 'MISSED'}")
+    for label, t_tick in (("a state every tick (default)", t_world), (f"keyframes every {KEYFRAMES} ticks", t_keyed)):
+        ratio = t_tick / t_raw
+        print(f"     orchestrated, {label + ':':<31}{t_tick * 1e6:6.1f} us   ratio / raw {ratio:5.3f}   "
+              f"target <= {TARGET}: {'met' if ratio <= TARGET else 'MISSED'}")
     print(f"     real-time factor: orchestrated {dt / t_world:6.1f}, raw {dt / t_raw:6.1f}; computing per "
           f"simulated second: {t_world / dt:.3f} s (paper: 0.74 s)")
+    backtick_trade(world, keyed)
     breakdown(world, ticks)
+    print(f"     history every tick costs {(t_world - t_keyed) * 1e6:.1f} us a tick more than keyframes every "
+          f"{KEYFRAMES} ticks (the capture, and keeping 1000 states: memory a tick touches and frees)")
     world.close()
+    keyed.close()
+
+
+def backtick_trade(world: World, keyed: World, rounds: int = 40) -> None:
+    """What ``backtick(1)`` costs in each world, on average over where the tick lies between keyframes
+    (each round goes back one tick and forward two, so the tick moves on): the round's time less two
+    ticks' (timed alike, interleaved). Keyframes every k ticks step up to k - 1 ticks again."""
+    def rounds_of(w: World) -> Callable[[], None]:
+        def run() -> None:
+            for _ in range(rounds):
+                w.backtick(1)
+                w.tick(2)
+        return run
+
+    def ticks_of(w: World) -> Callable[[], None]:
+        return lambda: w.tick(2 * rounds)
+
+    r_world, r_keyed, t_world, t_keyed = (t / rounds for t in best_of_each(
+        [rounds_of(world), rounds_of(keyed), ticks_of(world), ticks_of(keyed)]))
+    back = r_world - t_world  # restoring a state (the core's set_state steps MuJoCo's first half again)
+    print(f"     backtick(1): {back * 1e6:6.1f} us with a state every tick, {(r_keyed - t_keyed) * 1e6:6.1f} us with "
+          f"keyframes every {KEYFRAMES} (on average; up to {KEYFRAMES - 1} ticks stepped again: about "
+          f"{(back + (KEYFRAMES - 1) * t_keyed / 2) * 1e6:.0f} us at worst)")
 
 
 def breakdown(world: World, ticks: int, repeats: int = 5) -> None:
     """Where an orchestrated tick goes: each module's step (per tick, on average) and the rest (the
-    kernel's dispatch, bus copies and the history's state capture), timed on a fork of the world
-    (best of ``repeats``; the timers add about 0.1 us per module)."""
+    kernel's dispatch, bus copies, the finite-output check and the history entry), timed on a fork of
+    the world (best of ``repeats``; the timers add about 0.1 us per module); then the history entry,
+    its parts and the finite check, each timed alone on the fork (hot in the cache: in the run, a state
+    every tick costs more, see the last line)."""
     fork = world.fork()
     fork.tick(100)  # the fork's modules find their ids in the copied core
     clock = time.perf_counter
@@ -186,6 +223,30 @@ def breakdown(world: World, ticks: int, repeats: int = 5) -> None:
     total, parts = best
     shown = ", ".join(f"{name} {t / ticks * 1e6:.1f}" for name, t in parts.items())
     print(f"     per tick (us): {shown}; kernel + history {(total - sum(parts.values())) / ticks * 1e6:.1f}")
+    record, get_state, bus_bytes = fork._record, fork.core.get_state, fork._mv.tobytes
+    probes = fork._structure.output_check.probes(fork._buf, fork._mv)
+    t0 = fork.tick_count
+
+    def entries() -> None:
+        for k in range(t0, t0 + ticks):
+            record(k)
+
+    def core_states() -> None:
+        for _ in range(ticks):
+            get_state()
+
+    def buses() -> None:
+        for _ in range(ticks):
+            bus_bytes()
+
+    def checks() -> None:
+        for _ in range(ticks):
+            for add, values in probes:
+                add(values)
+
+    t_entry, t_core, t_bus, t_check = (t / ticks * 1e6 for t in best_of_each([entries, core_states, buses, checks]))
+    print(f"     alone (us): history entry {t_entry:.1f} (the core's get_state {t_core:.1f}, the bus's bytes "
+          f"{t_bus:.1f}), finite-output check {t_check:.1f} ({sum(v.nbytes for _a, v in probes) // 8} values)")
     fork.close()
 
 

@@ -5,9 +5,12 @@ The kernel's hot loop walks the schedule every tick: for each module, test its p
 its inputs need, call its step. Walking a list of entries (`PlainTick`) costs 0.1 to 0.2 us per
 module and tick more (attribute loads, empty loops, branches) on top of the step itself. For each structure,
 `CompiledTick` writes that walk out as straight-line source, one statement per copy and per step,
-with the steps and index arrays bound as fast locals, and compiles it. A structure changes only on an
-edit (add, remove, connect, ...), and keeps its function (`Structure.compiled`), so one compilation
-serves every tick of the structure, rollbacks across edits included.
+with the steps and index arrays bound as fast locals, and compiles it; its last line is the check that
+the outputs are finite (`orchestrator.kernel.finite`: the spans' sums added up, a short span written
+out value by value, and tested once). A structure changes only on an edit (add, remove, connect, ...),
+and keeps its function (`Structure.compiled`), so one compilation serves every tick of the structure,
+rollbacks across edits included. A world runs it bound to its bus (`CompiledTick.bind`: the same code
+with the bus and the spans summed on it as defaults too), one call a tick.
 
 Generated code stays debuggable:
 
@@ -27,7 +30,8 @@ keeps the text, for whoever wants to see what a tick does.
 
 History's `state_saver` is the same idea for the states saved after each tick: one generated
 function returns every module's state as a tuple, calling ``get_state`` only where a step may have
-changed the state and holding the others as values.
+changed the state and holding the others as values, and another pushes history's entry for a tick (the
+bus's bytes, the parameters and those states) in one call.
 """
 
 from __future__ import annotations
@@ -38,12 +42,13 @@ import os
 import re
 import weakref
 from collections.abc import Callable, Sequence
-from types import CodeType, TracebackType
+from types import CodeType, FunctionType, TracebackType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import DynabrainError
+from .finite import INLINE, Probe
 
 if TYPE_CHECKING:
     from .structure import Copies, Structure
@@ -78,10 +83,19 @@ def _define(source: str, kind: str, name: str, values: dict[str, Any]) -> tuple[
     return filename, namespace.pop(name)  # popped: the function and its globals make no cycle
 
 
-def _forget(code: CodeType, filename: str) -> None:
-    """Drop ``filename``'s source from `linecache` when ``code`` is collected. The code object lives
-    as long as a function made from it or a frame that ran it (in a kept traceback) does."""
-    weakref.finalize(code, linecache.cache.pop, filename, None)
+def _forget(codes: Sequence[CodeType], filename: str) -> None:
+    """Drop ``filename``'s source from `linecache` when every code object of ``codes`` is collected. A
+    code object lives as long as a function made from it or a frame that ran it (in a kept traceback)
+    does."""
+    left = [len(codes)]
+
+    def gone() -> None:
+        left[0] -= 1
+        if not left[0]:
+            linecache.cache.pop(filename, None)
+
+    for code in codes:
+        weakref.finalize(code, gone)
 
 
 def _identifier(name: str) -> str:
@@ -90,10 +104,13 @@ def _identifier(name: str) -> str:
 
 
 class CompiledTick:
-    """``run(n, t_ns, mv, buf)`` steps every module due at tick ``n`` (time ``t_ns``) on the bus ``buf``
-    (and ``mv``, its memoryview), with the delayed copies first and each module's input copies before
-    its step: the structure's plan as one generated function, the fast way (the World's default).
-    ``source`` is its text; ``filename`` the name its traceback lines and `linecache` entry have."""
+    """``run(n, t_ns, mv, buf, *probes)`` steps every module due at tick ``n`` (time ``t_ns``) on the bus
+    ``buf`` (and ``mv``, its memoryview), with the delayed copies first and each module's input copies
+    before its step, then checks that the outputs are finite (`orchestrator.kernel.finite`; ``probes``:
+    the add and values of each span it sums by a call): the structure's plan as one generated function,
+    the fast way (the World's default). A world runs ``bind(mv, buf)``, the same function with all
+    of that bound, as ``tick(n, t_ns)``. ``source`` is its text; ``filename`` the name its traceback
+    lines and `linecache` entry have."""
 
     def __init__(self, structure: Structure):
         env: dict[str, Any] = {}  # local name -> value, bound as defaults of the function
@@ -133,16 +150,43 @@ class CompiledTick:
                 body = f"if not (n - {entry.phase}) % {entry.period_ticks}: {body}"
             lines.append(body)
             owners.append(entry.name)
+        # the finite-output check: each span's sum (a short one written out), added up, tested once
+        self._check = structure.output_check
+        terms: list[str] = []
+        probes: list[str] = []  # the parameters `bind` fills from `OutputCheck.probes`, two per span summed by a call
+        self._called: list[int] = []  # ... and which spans they are
+        for k, (a, b) in enumerate(self._check.spans):
+            if b - a <= INLINE:
+                terms += [f"mv[{i}]" for i in range(a, b)]
+                continue
+            add, values = f"add_span{k}", f"span{k}"
+            taken.update((add, values))
+            probes += [add, values]
+            terms.append(f"{add}({values})")
+            self._called.append(k)
+        if terms:  # 1e309 is inf: a total that is NaN or infinite means some value is not finite
+            search = local("search_outputs", self._check.search)
+            lines.append(f"if not -1e309 < {' + '.join(terms)} < 1e309: {search}(buf, n)")
+            owners.append(None)
         # the values are defaults of `tick`, so they are fast locals in it; one default a line
         indent = " " * len("def tick(")
-        head = ["def tick(n, t_ns, mv, buf" + ("," if env else "):") + "\n"]
+        params = ["n, t_ns, mv, buf", *probes]
+        head = [f"def tick({', '.join(params)}" + ("," if env else "):") + "\n"]
         head += [f"{indent}{name}={name}" + (",\n" if i < len(env) - 1 else "):\n") for i, name in enumerate(env)]
         body = [f"    {line}\n" for line in lines] or ["    pass\n"]
         self.source = "".join([*head, *body])
         self.filename, self.run = _define(self.source, "tick", "tick", env)
-        _forget(self.run.__code__, self.filename)
+        _forget([self.run.__code__], self.filename)
         first = len(head) + 1  # the line number of lines[0]
-        self._owner = {first + i: owner for i, owner in enumerate(owners)}
+        self._owner = {first + i: owner for i, owner in enumerate(owners) if owner is not None}
+
+    def bind(self, mv: memoryview, buf: np.ndarray) -> Callable[[int, int], None]:
+        """The tick on the bus ``buf`` (``mv``, its memoryview): ``tick(n, t_ns)``, the same code as `run`
+        with the bus and the output check's spans on it bound as defaults (fast locals)."""
+        run = self.run
+        probes = self._check.probes(buf, mv)
+        bound = (mv, buf, *(value for k in self._called for value in probes[k]), *(run.__defaults__ or ()))
+        return FunctionType(run.__code__, run.__globals__, run.__name__, bound)
 
     def failed_module(self, tb: TracebackType | None) -> str | None:
         """The module whose step raised (``"connections"`` for the delayed copies), from the traceback
@@ -165,11 +209,12 @@ class PlainTick:
         self.delayed = structure.delayed
         self.delayed_gather = structure.delayed_gather
         self.dispatch = structure.dispatch
+        self.check = structure.output_check
         self.running: str | None = None
         """The module whose copies or step run now (``"connections"``: the delayed copies); after an
         exception out of `run`, the one that raised."""
 
-    def run(self, n: int, t_ns: int, mv: memoryview, buf: np.ndarray) -> None:
+    def run(self, n: int, t_ns: int, mv: memoryview, buf: np.ndarray, probes: Sequence[Probe] = ()) -> None:
         self.running = _CONNECTIONS
         for dst, src in self.delayed:
             mv[dst] = mv[src]
@@ -185,6 +230,20 @@ class PlainTick:
                 buf[dst] = buf[src]
             entry.step(t_ns, entry.period_ns)
         self.running = None
+        for add, values in probes:  # are the outputs finite? (`orchestrator.kernel.finite`)
+            total = add(values)
+            if not -1e309 < total < 1e309:  # 1e309 is inf: NaN or inf, some value is not finite
+                self.check.search(buf, n)
+
+    def bind(self, mv: memoryview, buf: np.ndarray) -> Callable[[int, int], None]:
+        """`run` on the bus ``buf`` (``mv``, its memoryview) and the output check's spans on it, as
+        ``tick(n, t_ns)`` (`CompiledTick.bind`'s form)."""
+        run, probes = self.run, self.check.probes(buf, mv)
+
+        def tick(n: int, t_ns: int) -> None:
+            run(n, t_ns, mv, buf, probes)
+
+        return tick
 
     def failed_module(self, tb: TracebackType | None) -> str | None:
         """The module whose step raised, from the traceback of an exception out of `run`: the marker
@@ -197,26 +256,39 @@ class PlainTick:
         return None
 
 
-_SAVERS: dict[tuple[bool, ...], Callable[..., Callable[[], tuple]]] = {}
+_SAVERS: dict[tuple[tuple[bool, ...], bool], Callable[..., tuple[Callable[[], tuple], Callable[[int], None]]]] = {}
 
 
-def state_saver(entries: Sequence[tuple[bool, Any]]) -> Callable[[], tuple]:
-    """A function that returns every module's state as one tuple, in one call: ``entries`` are
-    ``(True, get_state)`` for a state to ask for at each call, ``(False, state)`` for one kept as is.
-    The generated code depends only on which entries are calls, and is made once per such pattern;
-    its source is in `linecache` (``<dynabrain state saver 8>``) while a saver made from it lives."""
+def state_saver(entries: Sequence[tuple[bool, Any]], append: Callable[[tuple | int], None], copy: Callable[[], Any],
+                head: tuple[int, Any, Any], every: int = 1) -> tuple[Callable[[], tuple], Callable[[int], None]]:
+    """``(save, record)``: ``save()`` returns every module's state as one tuple, in one call (``entries``
+    are ``(True, get_state)`` for a state to ask for at each call, ``(False, state)`` for one kept as
+    is); ``record(tick)`` hands ``append`` history's entry for ``tick``, ``(world_id, tick, structure,
+    copy(), params, 0, *save())`` (`WorldState.entry`'s form; ``head`` is ``(world_id, structure,
+    params)``, ``copy`` makes the bus's copy), as one call too: the world's capture after each tick.
+    With keyframes (``every`` > 1, `History`), ``record`` hands the entry at ticks that are multiples of
+    ``every`` and the tick's number alone at the others. The generated code depends only on which entries
+    are calls and on keyframes or not, and is made once per such pattern; its source is in `linecache`
+    (``<dynabrain state saver 8>``) while a saver made from it lives."""
     pattern = tuple(bool(call) for call, _value in entries)
-    make = _SAVERS.get(pattern)
+    make = _SAVERS.get((pattern, every > 1))
     if make is None:
         names = [f"get_state{i}" if call else f"kept{i}" for i, call in enumerate(pattern)]
         items = "".join(f"{n}(), " if call else f"{n}, " for n, call in zip(names, pattern, strict=True))
-        bound = ", ".join(f"{n}={n}" for n in names)
-        source = (f"def make({', '.join(names)}):\n    def save({bound}):\n        return ({items})\n"
-                  "    return save\n")
+        bound = "".join(f"{n}={n}, " for n in names)
+        between = "        if tick % every:\n            return append(tick)\n" if every > 1 else ""
+        source = (f"def make({''.join(n + ', ' for n in names)}append, copy, world_id, structure, params, every):\n"
+                  f"    def save({bound}):\n"
+                  f"        return ({items})\n"
+                  f"    def record(tick, {bound}append=append, copy=copy, world_id=world_id, structure=structure,"
+                  " params=params, every=every):\n"
+                  f"{between}"
+                  f"        append((world_id, tick, structure, copy(), params, 0, {items}))\n"
+                  "    return save, record\n")
         filename, make = _define(source, "state saver", "make", {})
-        save_code = next(c for c in make.__code__.co_consts if isinstance(c, CodeType))
-        _forget(save_code, filename)  # `make` holds it, and so does every saver made from it
+        # `make` holds both functions' code, and so does every saver made from it
+        _forget([c for c in make.__code__.co_consts if isinstance(c, CodeType)], filename)
         if len(_SAVERS) >= 256:  # patterns come and go with edits: keep the cache small
             _SAVERS.clear()
-        _SAVERS[pattern] = make
-    return make(*(value for _call, value in entries))
+        _SAVERS[pattern, every > 1] = make
+    return make(*(value for _call, value in entries), append, copy, *head, every)

@@ -14,11 +14,13 @@ no contact) ends a span, so the values it holds by design never make a check loo
 a value be there all the same (NaN written into an input by hand), the sum is not finite, the search
 finds every checked output finite, and the tick goes on: slower, never wrong.
 
-A span of up to `SMALL` values is summed by Python over a memoryview (under 0.1 us); a longer one by a
-dot product with ones (about 0.3 us for the humanoid's 730 values), and one longer than `LARGE` (an
-image) by numpy's reduction on one thread. A sum is infinite or NaN when a
-value is (a sum of finite values that overflows is infinite too: the search then finds nothing, and the
-tick goes on); the world tests it with comparisons, which never warn.
+A span of up to `INLINE` values is added up by the tick itself (``mv[7] + mv[8]``, written out in the
+generated tick: a few tens of ns), one of up to `SMALL` values by Python's `sum` over a memoryview
+(under 0.1 us), a longer one by a dot product with ones (about 0.3 us for the humanoid's 730 values),
+and one longer than `LARGE` (an image) by numpy's reduction on one thread. The tick adds the spans'
+sums together and tests the total once (`orchestrator.kernel.compiled`). A sum is infinite or NaN when
+a value is (a sum of finite values that overflows is infinite too: the search then finds nothing, and
+the tick goes on); the tick tests it with comparisons, which never warn.
 """
 
 from __future__ import annotations
@@ -32,6 +34,9 @@ from .errors import NonFiniteOutputError
 
 if TYPE_CHECKING:
     from .structure import Structure
+
+INLINE = 4
+"""Spans of at most this many values are added up in the generated tick itself, value by value."""
 
 SMALL = 24
 """Spans of at most this many values are summed over a memoryview; longer ones by a dot product."""

@@ -15,7 +15,7 @@ import functools
 import os
 import re
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -64,6 +64,20 @@ class WorldState:
     def __repr__(self) -> str:
         return f"<WorldState tick={self.tick} modules={len(self.states)} bus={self.bus.size}>"
 
+    def entry(self) -> tuple:
+        """The state as history holds it: ``(world_id, tick, structure, bus, params, id, *states)``, the
+        bus an array or its bytes (`from_entry` makes the state again)."""
+        return (self.world_id, self.tick, self.structure, self.bus, self.params, self.id, *self.states)
+
+    @staticmethod
+    def from_entry(entry: tuple) -> WorldState:
+        """The state history holds as ``entry`` (`entry`'s form); a bus kept as bytes comes back as a
+        read-only array on them."""
+        world_id, tick, structure, bus, params, id = entry[:6]
+        if type(bus) is bytes:
+            bus = np.frombuffer(bus)
+        return WorldState(world_id, tick, structure, bus, entry[6:], params, id)
+
     def nbytes(self) -> int:
         """Approximate memory held by this state (arrays counted by size, `STATE_OVERHEAD` for the rest)."""
         return STATE_OVERHEAD + self.bus.nbytes + sum(_size(s) for s in self.states)
@@ -87,16 +101,32 @@ def _size(value: Any) -> int:
 class History:
     """A bounded ring of world states: the newest is the current tick's; up to ``depth`` behind it.
 
+    The ring holds each state as a plain tuple (`WorldState.entry`), which the world's capture makes in
+    its generated code (`compiled.state_saver`, with the bus as bytes: cheaper to make and to drop than
+    an array) and hands to `appender`'s append: a `WorldState` object is made only when one is read
+    (`top`, `peek_back`).
+
     ``budget``: the most bytes it may hold when full (None: `default_budget`, read when first needed).
     The first state of each structure (`replace_top`: the world's first state after a change) is
-    checked against it (`check`), so a history that would not fit is refused before it grows."""
+    checked against it (`check`), so a history that would not fit is refused before it grows.
 
-    def __init__(self, depth: int, budget: int | None = None):
+    ``every``: keyframes. 1 (the default): a state every tick. k > 1: a state every k ticks (at ticks
+    that are multiples of k), and after every edit or event (the world pushes those whole); the ticks
+    between hold only their number, and `restore_point` gives the keyframe before a tick and how many
+    ticks the world steps again from it to reach that tick (`World.backtick`). It trades the cost of
+    a state each tick for up to k - 1 ticks stepped again at each backtick (see the README, "History
+    with keyframes")."""
+
+    def __init__(self, depth: int, budget: int | None = None, every: int = 1):
         if depth < 0:
             raise ValueError("history depth must be >= 0")
+        if not isinstance(every, int) or isinstance(every, bool) or every < 1:
+            raise ValueError(f"keyframes every {every!r} ticks: a whole number >= 1")
         self.depth = depth
         self.budget = budget
-        self._ring: deque[WorldState] = deque(maxlen=depth + 1)
+        self.every = every
+        # a keyframe at or before the oldest tick within ``depth`` is always kept
+        self._ring: deque[tuple | int] = deque(maxlen=depth + every)
         self._checked: Structure | None = None  # the structure whose state was last checked
 
     def __len__(self) -> int:
@@ -106,7 +136,11 @@ class History:
         self._ring.clear()
 
     def push(self, state: WorldState) -> None:
-        self._ring.append(state)
+        self._ring.append(state.entry())
+
+    def appender(self) -> Callable[[tuple], None]:
+        """The call that pushes an entry (`WorldState.entry`'s form): the world's capture after a tick."""
+        return self._ring.append
 
     def replace_top(self, state: WorldState) -> None:
         """Make ``state`` the newest (the world's first state after a change); a `HistoryBudgetError`,
@@ -114,55 +148,100 @@ class History:
         if state.structure is not self._checked:
             self.check(state.nbytes())
             self._checked = state.structure
-        if self._ring and self._ring[-1].tick == state.tick:
-            self._ring[-1] = state
+        if self._ring and _tick_of(self._ring[-1]) == state.tick:
+            self._ring[-1] = state.entry()
         else:
-            self._ring.append(state)
+            self._ring.append(state.entry())
 
     def check(self, state_bytes: int, what: str = "") -> None:
-        """Raise a `HistoryBudgetError` when ``depth + 1`` states of ``state_bytes`` each are above the
-        budget; ``what`` says what makes a state that large (for the message)."""
+        """Raise a `HistoryBudgetError` when `states_when_full` states of ``state_bytes`` each are above
+        the budget; ``what`` says what makes a state that large (for the message)."""
         if self.budget is not None:
             budget, source = self.budget, "the world's own: world.history_budget, history.budget"
         else:
             budget, source = default_budget()
-        full = state_bytes * (self.depth + 1)
+        full = state_bytes * self.states_when_full
         if full > budget:
             raise HistoryBudgetError(
                 f"a history of {self.depth:,} ticks would hold {format_bytes(full)} when full "
-                f"({self.depth + 1:,} states of {format_bytes(state_bytes)}{what}), above the history budget of "
+                f"({self.states_when_full:,} states of {format_bytes(state_bytes)}{what}), above the history budget of "
                 f"{format_bytes(budget)} ({source}); keep fewer ticks (world.history) or raise the budget "
                 f"(world.history_budget, {BUDGET_ENV})")
 
     @property
+    def states_when_full(self) -> int:
+        """How many states the ring holds at most (edits and events aside, which add keyframes)."""
+        return self.depth + 1 if self.every == 1 else self.depth // self.every + 2
+
+    @property
     def top(self) -> WorldState:
-        return self._ring[-1]
+        """The newest state (a `RollbackError` when its tick holds no state: keyframes, `restore_point`)."""
+        return self.peek_back(0)
 
     @property
     def available(self) -> int:
         """How many ticks back `backtick` can go."""
-        return max(len(self._ring) - 1, 0)
+        if self.every == 1:
+            return max(len(self._ring) - 1, 0)
+        for oldest, entry in enumerate(self._ring):  # the oldest keyframe: at most `every` entries in
+            if type(entry) is tuple:
+                return min(len(self._ring) - 1 - oldest, self.depth)
+        return 0
 
     def peek_back(self, n: int) -> WorldState:
+        """The state ``n`` ticks back (a `RollbackError` when that tick holds no state: keyframes,
+        `restore_point`)."""
+        self._check_back(n)
+        entry = self._ring[-1 - n]
+        if type(entry) is not tuple:
+            raise RollbackError(f"tick {entry} holds no state (keyframes every {self.every} ticks): "
+                                "its keyframe and the ticks to step from it are restore_point's")
+        return WorldState.from_entry(entry)
+
+    def restore_point(self, n: int) -> tuple[WorldState, int]:
+        """(the newest keyframe at or before ``n`` ticks back, how many ticks after it that tick is): the
+        state itself and 0 where that tick holds one (always, with a state every tick)."""
+        self._check_back(n)
+        ring, at = self._ring, len(self._ring) - 1 - n
+        for ahead in range(at + 1):
+            entry = ring[at - ahead]
+            if type(entry) is tuple:
+                return WorldState.from_entry(entry), ahead
+        raise RollbackError(f"backtick({n}): no keyframe kept before it")  # `available` keeps one
+
+    def _check_back(self, n: int) -> None:
         if n < 0:
             raise RollbackError(f"backtick({n}): n must be >= 0")
         if n > self.available:
             raise RollbackError(f"backtick({n}) goes beyond the history: only {self.available} ticks are kept "
                                 f"(history depth {self.depth}; raise `world.history` in the scenario)")
-        return self._ring[-1 - n]
 
     def drop_newest(self, n: int) -> None:
         for _ in range(n):
             self._ring.pop()
 
     def memory_bytes(self) -> int:
-        """Memory held by the ring now, estimated from its newest entry."""
-        return self._ring[-1].nbytes() * len(self._ring) if self._ring else 0
+        """Memory held by the ring now, estimated from its newest state."""
+        return self._newest_bytes() * self._states()
 
     def describe(self) -> str:
-        per = self._ring[-1].nbytes() if self._ring else 0
-        return (f"{len(self._ring)} of {self.depth + 1} states, ~{per / 1024:.1f} KiB each, "
-                f"~{per * (self.depth + 1) / 2**20:.1f} MiB when full")
+        per, most = self._newest_bytes(), self.states_when_full
+        keyframes = f" (keyframes every {self.every} ticks)" if self.every > 1 else ""
+        return (f"{self._states()} of {most} states{keyframes}, ~{per / 1024:.1f} KiB each, "
+                f"~{per * most / 2**20:.1f} MiB when full")
+
+    def _states(self) -> int:
+        return len(self._ring) if self.every == 1 else sum(type(e) is tuple for e in self._ring)
+
+    def _newest_bytes(self) -> int:
+        newest = next((e for e in reversed(self._ring) if type(e) is tuple), None)
+        return WorldState.from_entry(newest).nbytes() if newest is not None else 0
+
+
+def _tick_of(entry: tuple | int) -> int:
+    """The tick of an entry of the ring: a state's (`WorldState.entry`), or the number a tick between
+    keyframes holds."""
+    return entry[1] if type(entry) is tuple else entry
 
 
 def projected_state_bytes(modules: Iterable[Any]) -> dict[str, int]:

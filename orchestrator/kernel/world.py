@@ -31,7 +31,7 @@ import numpy as np
 
 from . import portable
 from .bodies import BodySpecError
-from .compiled import compiled_by_default, state_saver
+from .compiled import CompiledTick, PlainTick, compiled_by_default, state_saver
 from .core import KEEP, BodySpec, PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
@@ -64,10 +64,17 @@ class World:
     (`Structure.plain`), the one to debug with. Both give bit-identical states. Left out (None), the
     environment decides: ``DYNABRAIN_COMPILED=0`` runs every such world plain, which debugs a whole
     program without editing it; unset or ``1``, generated. A fork keeps its world's choice.
+
+    ``keyframe_every``: history keeps a whole state every tick (1, the default), or every that many
+    ticks and after each edit or event, stepping the ticks between again when `backtick` goes to one
+    (bit for bit: the steps are deterministic, as rollback requires). Fewer states save their cost at
+    every tick; a backtick then steps up to ``keyframe_every - 1`` ticks. A world with a module that
+    cannot roll back keeps a state every tick. See `History` and the README. A fork keeps it.
     """
 
     def __init__(self, name: str = "world", *, step: int | str = "2ms", seed: int = 0,
-                 history: int = 1000, core: PhysicsCore | None = None, compiled: bool | None = None):
+                 history: int = 1000, core: PhysicsCore | None = None, compiled: bool | None = None,
+                 keyframe_every: int = 1):
         self.name = name
         self.dt_ns = step if isinstance(step, int) else parse_duration_ns(step)
         if self.dt_ns <= 0:
@@ -75,17 +82,21 @@ class World:
         self.seed = int(seed)
         self._compiled = compiled_by_default() if compiled is None else bool(compiled)
         self._lock = threading.RLock()
-        self._history = History(history)
+        try:
+            self._history = History(history, every=keyframe_every)
+        except ValueError as exc:
+            raise DynabrainError(str(exc)) from None
         self._structure = build_structure((), ())
         # what `_capture` saves, made again after a change of structure or parameters or a restore:
         self._params: tuple[dict[str, Any], ...] = ()  # every module's parameter dict, shared by states
         self._save_states: Callable[[], tuple] = tuple  # every module's state, in one call
+        self._record: Callable[[int], None] = _nothing  # history's entry of a tick, in one call (`state_saver`)
         self._saver_of: Structure | None = None  # ... for this structure; None once a parameter changed
         # (the modules' bindings tell `_param_changed`) or a state was restored (`_apply`)
         self._buf = np.zeros(0)
         self._mv = memoryview(self._buf)  # the bus again: the tick's copies are cheaper on it
         self._ro = _read_only(self._buf)  # and read-only, for observers
-        self._finite: tuple = ()  # the spans of outputs checked after each tick (`OutputCheck.probes`)
+        self._run_tick: Callable[[int, int], None] = _nothing  # the structure's tick on this bus (`CompiledTick.bind`)
         self._tick = 0
         self._dirty = True
         self._closed = False
@@ -162,8 +173,7 @@ class World:
         """Advance ``n`` base steps (d-tick)."""
         with self._lock:
             self._check_open()
-            for _ in range(n):
-                self._step_once()
+            self._steps(n)
 
     def backtick(self, n: int = 1) -> None:
         """Go back ``n`` ticks, exactly (d-backtick). Stepping forward again with the same inputs
@@ -172,56 +182,106 @@ class World:
             self._check_open()
             if n == 0:
                 return
-            target = self._history.peek_back(n)
+            target, ahead = self._history.restore_point(n)  # (a keyframe, and the ticks after it)
             self._check_restorable(target, f"backtick({n})")
             from_tick = self._tick
             self._history.drop_newest(n)
             self._apply(target)
+            self._replay(ahead)
             self._dirty = False
             for obs in self._observers:
                 obs.on_rollback(self._view, from_tick)
 
     def _step_once(self) -> None:
-        if self._dirty:
-            self._history.replace_top(self._capture())
+        self._steps(1)
+
+    def _steps(self, count: int) -> None:
+        """``count`` ticks (see the module docstring), each read from the world's attributes again (an
+        event or an observer may edit the world between two). The hot path: what is not needed at
+        every tick is in `_fire_events` and `_make_saver`."""
+        scheduled, dt_ns = self._scheduled, self.dt_ns
+        for _ in range(count):
+            if self._dirty:
+                self._history.replace_top(self._capture())
+                self._dirty = False
+            n = self._tick
+            keyframe = False
+            if n in scheduled:  # (events may change the structure, and with it `_run_tick`)
+                keyframe = self._fire_events(n, scheduled[n])
+            try:
+                self._run_tick(n, n * dt_ns)  # the steps and the finite-output check (`CompiledTick.bind`)
+            except Exception as exc:  # roll back to the last good tick, then report
+                where = self._runner().failed_module(exc.__traceback__) or "?"  # the traceback says which module
+                raise self._rollback_failed_tick(n, where, exc) from exc
+            except BaseException:  # KeyboardInterrupt and the like: roll back, re-raise as is
+                self._back_to(0)
+                self._dirty = False
+                raise
+            self._tick = n + 1
+            if self._saver_of is not self._structure:
+                self._make_saver(self._structure)
+            if keyframe:  # a whole state after events: stepping again from a keyframe never runs them twice
+                self._history.push(self._capture())
+            else:
+                self._record(n + 1)  # history's entry, as `_capture` makes it
             self._dirty = False
-        n = self._tick
-        current: str | None = "event"
+            if self._observers:
+                for obs in self._observers:
+                    obs.on_tick(self._view)
+
+    def _fire_events(self, n: int, events: list[tuple[str, ScheduledAction]]) -> bool:
+        """Run the scenario's actions due at tick ``n`` (True when there were some); one that fails rolls
+        the tick back and raises."""
+        if not events:
+            return False
+        current = "?"
+        self._source = "scenario"
         try:
-            events = self._scheduled.get(n)
-            if events:
-                self._source = "scenario"
-                for label, action in events:
-                    current = f"event {label}"
-                    action(self)
-                self._source = "api"
-            # after the events: they may have changed the structure
-            runner = self._structure.compiled if self._compiled else self._structure.plain
-            current = None
-            runner.run(n, n * self.dt_ns, self._mv, self._buf)
-            for add, values in self._finite:  # are the outputs finite? (`orchestrator.kernel.finite`)
-                total = add(values)
-                if not -1e309 < total < 1e309:  # 1e309 is inf: NaN or inf, some value is not finite
-                    self._structure.output_check.search(self._buf, n)
-        except Exception as exc:  # roll back to the last good tick, then report
+            for label, action in events:
+                current = label
+                action(self)
+        except Exception as exc:
             self._source = "api"
-            if current is None:  # a module's step: the traceback says which
-                current = runner.failed_module(exc.__traceback__) or "?"
-            raise self._rollback_failed_tick(n, current, exc) from exc
-        except BaseException:  # KeyboardInterrupt and the like: roll back, re-raise as is
+            raise self._rollback_failed_tick(n, f"event {current}", exc) from exc
+        except BaseException:
             self._source = "api"
-            self._apply(self._history.top)
+            self._back_to(0)
             self._dirty = False
             raise
-        self._tick = n + 1
-        self._history.push(self._capture())
-        self._dirty = False
-        if self._observers:
-            for obs in self._observers:
-                obs.on_tick(self._view)
+        self._source = "api"
+        return True
+
+    def _runner(self) -> CompiledTick | PlainTick:
+        """The tick the world runs (`_run_tick` is it, bound to the bus)."""
+        return self._structure.compiled if self._compiled else self._structure.plain
+
+    def _back_to(self, n: int) -> None:
+        """Make the world what it was ``n`` ticks ago (0: at the current tick, after a failed one), from
+        history's keyframe and the ticks stepped again after it; history itself is left as it is."""
+        state, ahead = self._history.restore_point(n)
+        self._apply(state)
+        self._replay(ahead)
+
+    def _replay(self, ticks: int) -> None:
+        """Step ``ticks`` ticks again from the keyframe just applied, as they ran: no events (a keyframe
+        follows every tick that had some), no history entries, no observers. Steps that do not repeat
+        themselves (a module that is not deterministic) raise a `RollbackError`, the world left at the
+        keyframe and history cut after it."""
+        dt_ns = self.dt_ns
+        for done in range(ticks):
+            n = self._tick
+            try:
+                self._run_tick(n, n * dt_ns)
+            except Exception as exc:
+                keyframe = n - done
+                self._history.drop_newest(ticks)  # the ticks after the keyframe
+                self._apply(self._history.top)
+                raise RollbackError(f"stepping again from the keyframe at tick {keyframe} to tick {keyframe + ticks} "
+                                    f"failed at tick {n} ({exc}); the world is at tick {keyframe}") from exc
+            self._tick = n + 1
 
     def _rollback_failed_tick(self, n: int, where: str, exc: Exception) -> ModuleError:
-        self._apply(self._history.top)
+        self._back_to(0)
         self._dirty = False
         if isinstance(exc, ModuleError):
             err = exc if exc.tick is not None else exc.at_tick(n)
@@ -246,7 +306,7 @@ class World:
         """What each state of history holds until the structure or a parameter changes, or a state is
         restored: the modules' parameter dicts (one shared tuple), the state of each module whose
         steps leave it alone (`Module.steps_change_state`: saved now, then shared), and a call to
-        ``get_state`` for the others."""
+        ``get_state`` for the others; and `_record`, which pushes such a state after a tick."""
         self._params = tuple([rec.module._param_values for rec in structure.records])
         entries: list[tuple[bool, Any]] = []
         for rec, how in zip(structure.records, structure.saves, strict=True):
@@ -259,7 +319,11 @@ class World:
                 entries.append((True, module.get_state))
             else:
                 entries.append((False, module.get_state()))
-        self._save_states = state_saver(entries)
+        # the bus goes into history as bytes (`History`): half the cost of an array's copy, to make and to drop;
+        # a state every tick while a module cannot roll back (stepping it again would repeat what it did)
+        every = 1 if SAVE_NONE in structure.saves else self._history.every
+        self._save_states, self._record = state_saver(entries, self._history.appender(), self._mv.tobytes,
+                                                      (self._id, structure, self._params), every)
         self._saver_of = structure
 
     def _param_changed(self, module: Module) -> None:
@@ -344,7 +408,8 @@ class World:
                 for rec in self._structure.records:
                     rec.module.bind_ports(bindings[rec.name])
             other = World(name or f"{self.name}-fork", step=self.dt_ns, seed=self.seed,
-                          history=self._history.depth, compiled=self._compiled)
+                          history=self._history.depth, compiled=self._compiled, keyframe_every=self._history.every)
+            other._history.budget = self._history.budget  # a budget the scenario raised
             other._install(rebind_structure(self._structure, clones), carry_values=False, bus=self._buf)
             other._tick = self._tick
             other._scheduled = {k: list(v) for k, v in self._scheduled.items()}
@@ -453,7 +518,8 @@ class World:
                     buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
         self._buf, self._mv, self._ro = buf, memoryview(buf), _read_only(buf)
         self._structure = structure
-        self._finite = structure.output_check.probes(buf, self._mv)
+        self._run_tick = (structure.compiled if self._compiled else structure.plain).bind(self._mv, buf)
+        self._saver_of = None  # `_record` copies the old bus
         for rec in structure.records:
             rec.module.bind_ports(structure.layout.modules[rec.name].binding(buf, self._ro, self._param_changed))
             rec.module.bind()
@@ -1161,6 +1227,10 @@ def _world_values(value: Sequence[Any], key: str) -> list[float]:
     from .bodies import quantities
 
     return [float(x) for x in quantities(value, 3, "length" if key == "anchor" else None)]
+
+
+def _nothing(*_args: Any) -> None:
+    """What a world with no modules yet runs for a tick, and records after it."""
 
 
 def _read_only(buf: np.ndarray) -> np.ndarray:
