@@ -263,25 +263,25 @@ class Expression:
         raise self._refuse(node, "the operator ~ is not allowed")
 
     def _bool_op(self, node: ast.BoolOp) -> Evaluator:
-        parts = [self._compile(v) for v in node.values]
+        """``and`` / ``or`` as Python has them: the first operand that decides is the value, and the last
+        one is returned without a truth test of its own."""
+        *heads, last = [self._compile(v) for v in node.values]
         if isinstance(node.op, ast.And):
             def both(r: Reader) -> Any:
-                value = True
-                for part in parts:
+                for part in heads:
                     value = part(r)
                     if not value:
                         return value
-                return value
+                return last(r)
 
             return both
 
         def either(r: Reader) -> Any:
-            value = False
-            for part in parts:
+            for part in heads:
                 value = part(r)
                 if value:
                     return value
-            return value
+            return last(r)
 
         return either
 
