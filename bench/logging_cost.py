@@ -2,10 +2,13 @@
 
 1. Step time with full logging (the bus, body poses and events at every tick, the scene every second)
    against no logging, on the humanoid scenario (``humanoid_stand``, when it is there), two cubes and
-   the 200-box selection scenario. Target: logging costs at most 20% of the step. Also with poses
+   the 200-box selection scenario (targets below). Also with poses
    decimated to every 10th tick, and with the writer on a thread of the simulation's process instead
-   of its own process (``writer="thread"``, for comparison). Runs of 5000 ticks (10 s simulated) for
-   the humanoid and two cubes; a run's wall time includes closing the log (also printed alone).
+   of its own process (``writer="thread"``, for comparison); and the logger's own cost on the stepping
+   thread, its rows handed to a writer thread that drops them (what is left of the full figure is the
+   writer process's doing: its CPU on a loaded machine, the caches and memory it shares). Targets: at
+   most 10% on the humanoid, 20% on two cubes. Runs of 5000 ticks (10 s simulated) for the humanoid and
+   two cubes; a run's wall time includes closing the log (also printed alone).
 2. Reading a log back: bus rows decoded per second; `replay --verify` in ticks per second, against
    re-simulating the same scenario without comparing.
 3. Crash safety: `dynabrain run --realtime --log` killed with SIGKILL after 3 s, the simulation's
@@ -42,24 +45,34 @@ def timed_run(name: str, ticks: int, log: str | None, decimate: int = 1, writer:
               ) -> tuple[float, float, float, float]:
     """(wall s, stepping-thread CPU s, writer CPU s, close s) to tick ``ticks`` times and close the
     log, on a fresh world, with or without a logger (attaching it, which starts the writer, is not timed)."""
+    from dynabrain.orchestrator.logs import sink
     from dynabrain.orchestrator.logs.logger import McapLogger
     from dynabrain.orchestrator.scenario.model import load_scenario
 
     sc = load_scenario(SCENARIOS / f"{name}.yaml")
     world = sc.build()
-    logger = McapLogger(log, decimate=decimate, window=0, writer=writer).attach(world, sc) if log else None
-    t0, c0 = time.perf_counter(), time.thread_time()
-    world.tick(ticks)
-    t1 = time.perf_counter()
-    if logger is not None:
-        logger.close()
-    wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    encode = sink.LogSink.rows
+    if writer == "idle":  # the logger's own cost: a writer thread that takes the rows and writes none
+        sink.LogSink.rows = lambda *_args: None
+    try:
+        logger = McapLogger(log, decimate=decimate, window=0, writer="thread" if writer == "idle" else writer
+                            ).attach(world, sc) if log else None
+        t0, c0 = time.perf_counter(), time.thread_time()
+        world.tick(ticks)
+        t1 = time.perf_counter()
+        if logger is not None:
+            logger.close()
+        wall, cpu = time.perf_counter() - t0, time.thread_time() - c0
+    finally:
+        sink.LogSink.rows = encode
     world.close()
     return wall, cpu, logger.stats["writer_cpu_s"] if logger else 0.0, time.perf_counter() - t1 if logger else 0.0
 
 
 RUNS = {"full": ("full logging", 1, "process"), "dec10": ("poses every 10th tick", 10, "process"),
-        "thread": ("full, writer thread", 1, "thread")}
+        "thread": ("full, writer thread", 1, "thread"), "own": ("the logger alone", 1, "idle")}
+TARGETS = {"humanoid_stand": 0.10, "two_cubes": 0.20}
+"""Logging's share of the wall time at most (full logging), by scenario; 20% elsewhere."""
 
 
 def step_cost(name: str, ticks: int, folder: str) -> str:
@@ -72,13 +85,15 @@ def step_cost(name: str, ticks: int, folder: str) -> str:
             best[key] = tuple(min(a, b) for a, b in zip(best[key], measured, strict=True))
     base_wall, base_cpu = (x / ticks * 1e6 for x in best["none"][:2])
     print(f"   {name:<15} {ticks:>5} ticks, unlogged: {base_wall:7.2f} us/tick wall, {base_cpu:7.2f} us/tick CPU")
+    target = TARGETS.get(name, 0.2)
     for key, (label, _decimate, _writer) in RUNS.items():
         wall, cpu, writer = (x / ticks * 1e6 for x in best[key][:3])
         cost_wall, cost_cpu = (wall - base_wall) / base_wall, (cpu - base_cpu) / base_cpu
         print(f"   {label:>21}: wall +{wall - base_wall:6.2f} us = {100 * cost_wall:5.1f}% (close "
               f"{best[key][3] * 1e3:4.1f} ms) | stepping thread +{cpu - base_cpu:6.2f} us = {100 * cost_cpu:5.1f}% "
-              f"| writer {writer:6.2f} us/tick CPU   target <= 20%: wall {'met' if cost_wall <= 0.2 else 'MISSED'}, "
-              f"stepping thread {'met' if cost_cpu <= 0.2 else 'MISSED'}")
+              f"| writer {writer:6.2f} us/tick CPU   target <= {100 * target:.0f}%: wall "
+              f"{'met' if cost_wall <= target else 'MISSED'}, "
+              f"stepping thread {'met' if cost_cpu <= target else 'MISSED'}")
     os.replace(f"{path}.full", path)
     size = os.path.getsize(path)
     print(f"   {'':>21}  file: {size / 1024:.0f} KiB, {size / (ticks + 1):.0f} bytes/tick")

@@ -38,7 +38,10 @@ them too.
 
 **Cost.** The stepping thread copies the bus row into a preallocated block of shared memory (rows of
 consecutive ticks of one layout and epoch: a row's tick is its block's first tick plus its index, so
-a tick makes no Python object) and, every ``batch`` ticks, tells the child writer which rows to take.
+a tick makes no Python object; one memoryview copy while nothing else is due: `McapLogger.on_tick`;
+blocks are mapped with their pages, so no row faults one in) and, every ``batch`` ticks, tells the
+child writer which rows to take. When the blocks run out (rows so large that a block holds a few, or a
+writer behind), the rows beyond the window are handed over at once, and only then does it wait.
 The child encodes them (a few numpy operations per channel and batch: poses are taken from the bus's
 ``<core>.<body>.pos`` / ``.quat`` columns), compresses and writes, on a core of its own and under an
 interpreter lock of its own. Every writer call (schemas, channels, events) goes to the child the same
@@ -94,12 +97,13 @@ class _Block:
     rollback. A block takes no more rows once ``sealed``; the writer hands it back to its pool after
     writing its last rows (``pool``)."""
 
-    __slots__ = ("codec", "cut", "epoch", "extra", "first", "n", "pool", "rows", "scenes", "sealed", "sent",
+    __slots__ = ("codec", "cut", "epoch", "extra", "first", "flat", "n", "pool", "rows", "scenes", "sealed", "sent",
                  "shared_extra", "shared_rows")
 
     def __init__(self, codec: BusCodec, capacity: int, extra: int, pool: deque, sink: ThreadSink | ProcessSink):
         self.codec, self.pool = codec, pool
         self.rows, self.shared_rows = sink.new_rows((capacity, codec.size))  # shared: the child writer maps it
+        self.flat = memoryview(self.rows).cast("B").cast("d")  # the rows as one run of doubles (the hot path's copy)
         self.extra, self.shared_extra = sink.new_rows((capacity, extra)) if extra else (None, None)
         self.scenes: list[tuple[int, bytes]] = []
 
@@ -156,6 +160,11 @@ class McapLogger(Observer):
         self._bodies: list[str] | None = None
         self._made: dict[int, int] = {}  # blocks made per layout
         self._next_scene = 0
+        # the hot path (`on_tick`): ticks before `_fast_until` whose row goes right after the last one, from
+        # the bus `_bus` (its memoryview `_bus_mv`), take the fast way; anything that may change that sets it -1
+        self._fast_until = -1
+        self._bus: np.ndarray | None = None
+        self._bus_mv: memoryview | None = None
         self._written_max = -1
         self._compact = False
         self._restoring = False
@@ -201,19 +210,20 @@ class McapLogger(Observer):
     # -- observer hooks -------------------------------------------------------------------------------
     def on_tick(self, view: WorldView) -> None:
         """The hot path: copy the bus row into the block; everything else happens per batch."""
-        bus, tick, block = view.bus(), view.tick, self._block
-        if (self._dirty or block is None or tick != self._expect or block.n == len(block.rows)
-                or tick >= self._next_scene or bus.size != block.rows.shape[1] or self._missing):
+        tick, bus = view.tick, view.bus()
+        if tick == self._expect and tick < self._fast_until and bus is self._bus:
+            block = self._block
+            n, width = block.n, len(bus)  # one memoryview copy: the row right after the last
+            block.flat[n * width:n * width + width] = self._bus_mv
+            block.n = n + 1
+            self._expect = tick + 1
+            self._waiting += 1
+        else:
             if self.closed:
                 return
             if self._dirty or bus.size != self._codec.size:
                 self._refresh_layout(view)
             self._push(view, bus)
-        else:
-            block.rows[block.n] = bus
-            block.n += 1
-            self._expect = tick + 1
-            self._waiting += 1
         waiting = self._waiting - self.window
         if waiting >= self.batch or (waiting > 0 and time.monotonic() - self._drained_at >= self._max_wait):
             self._drain(waiting)
@@ -221,6 +231,7 @@ class McapLogger(Observer):
     def on_event(self, view: WorldView, event: WorldEvent) -> None:
         if self.closed:
             return
+        self._fast_until = -1
         if event.kind == "restore":
             self._restoring = True
             self._restored_snapshot = event.detail.get("snapshot")
@@ -251,6 +262,7 @@ class McapLogger(Observer):
         self._event("rollback", to, detail, "api")
         self._dirty = True
         self._next_scene = to
+        self._fast_until = -1
         if cause == "restore":
             self._refresh_layout(view)
             self._push(view, view.bus())
@@ -305,6 +317,7 @@ class McapLogger(Observer):
             return
         with self._lock:
             self.closed = True
+            self._fast_until = -1
             with contextlib.suppress(ValueError):  # not observing any more (the caller took it off)
                 self._world.unobserve(self)
             try:
@@ -344,6 +357,10 @@ class McapLogger(Observer):
         block.n += 1
         self._expect = tick + 1
         self._waiting += 1
+        if bus is not self._bus:
+            self._bus, self._bus_mv = bus, memoryview(bus)
+        # the ticks the hot path may take: up to the block's end or the next scene, while nothing else is due
+        self._fast_until = -1 if self._dirty or self._missing else min(block.first + len(block.rows), self._next_scene)
 
     def _start_block(self, tick: int) -> _Block:
         self._seal()
@@ -353,12 +370,19 @@ class McapLogger(Observer):
             pool = self._pools[codec.key] = deque()
         sink = self._sink
         sink.poll()
-        while not pool and self._made.get(codec.key, 0) >= MAX_BLOCKS:  # the writer is behind: wait for it
+        capacity = max(1, min(self.batch, BLOCK_BYTES // (8 * codec.size)))
+        # at most MAX_BLOCKS, and at least the blocks the window's rows can span and one more
+        most = max(MAX_BLOCKS, -(-self.window // capacity) + 2)
+        while not pool and self._made.get(codec.key, 0) >= most:  # the writer is behind: wait for it
+            waiting = self._waiting
+            if waiting > self.window:  # hand over what waits beyond the window first, so that a block
+                self._drain(waiting - self.window)  # comes back (rows so large that a block holds few)
+                if self._waiting < waiting:
+                    continue
             sink.wait()
         try:
             block = pool.popleft()
         except IndexError:
-            capacity = max(1, min(self.batch, BLOCK_BYTES // (8 * codec.size)))
             block = _Block(codec, capacity, 7 * len(self._missing), pool, sink)
             self._made[codec.key] = self._made.get(codec.key, 0) + 1
         self._block = block.start(tick, self._epoch)
@@ -368,6 +392,7 @@ class McapLogger(Observer):
     def _seal(self) -> None:
         """The block taking rows takes no more; one already written goes back (after the writer's jobs)."""
         block, self._block = self._block, None
+        self._fast_until = -1
         if block is None:
             return
         block.sealed = True

@@ -361,7 +361,9 @@ def _reserve(folder: str, size: int) -> tuple[mmap.mmap, str]:
             os.posix_fallocate(fd, 0, size)
         else:
             os.ftruncate(fd, size)
-        return mmap.mmap(fd, size), path
+        # mapped with its pages (MAP_POPULATE, where there is one): the rows written later fault no page in
+        flags = mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0)
+        return mmap.mmap(fd, size, flags=flags), path
     except OSError:
         with contextlib.suppress(OSError):
             os.unlink(path)
