@@ -11,7 +11,12 @@ One tick (n -> n+1), the failure policy of each phase in brackets:
 3. copy delayed connections; step each due module in schedule order, copying its direct inputs
    first  [an exception rolls back to tick n and is raised as `ModuleError`]; check that the outputs
    are finite  [a NaN or an infinity rolls back to tick n: `NonFiniteOutputError`, see `finite`];
-4. tick = n+1; save the state in history; tell observers.
+4. tick = n+1; save the state in history (with keyframes, ``keyframe_every``: at every k-th tick and
+   after events, else the tick's number only); tell observers.
+
+Step 3 is one generated call (`CompiledTick.bind`), and step 4's history entry another
+(`compiled.state_saver`); a rollback to a tick history holds by number restores the keyframe before
+it and steps the ticks between again (`_replay`).
 """
 
 from __future__ import annotations
