@@ -153,6 +153,18 @@ class History:
         else:
             self._ring.append(state.entry())
 
+    def set_top_bus(self, tick: int, bus: bytes) -> bool:
+        """Put ``bus`` into the newest entry when it is the whole state of ``tick`` (inputs written
+        before a tick change only the bus: this spares the world a capture of every module); False when
+        it is not (a keyframe ring between keyframes: the world captures the state instead)."""
+        if not self._ring:
+            return False
+        top = self._ring[-1]
+        if type(top) is not tuple or top[1] != tick:
+            return False
+        self._ring[-1] = (*top[:3], bus, *top[4:])
+        return True
+
     def check(self, state_bytes: int, what: str = "") -> None:
         """Raise a `HistoryBudgetError` when `states_when_full` states of ``state_bytes`` each are above
         the budget; ``what`` says what makes a state that large (for the message)."""

@@ -1133,8 +1133,8 @@ class World:
                         self._buf[slot.start:slot.start + slot.size] = values[k]
                         if self._observers:
                             self._emit("set", name=name, value=values[k].reshape(slot.shape).tolist())
-                    if slots:
-                        self._dirty = True
+                    if slots and not self._dirty and not self._history.set_top_bus(self._tick, self._buf.tobytes()):
+                        self._dirty = True  # (the state of this tick is saved with the inputs written in it)
                     self._step_once()
                     for slot, row in recs:
                         row[k] = self._buf[slot.start:slot.start + slot.size]
