@@ -190,7 +190,7 @@ class BridgeServer:
     def _stream_signals(self) -> list[str]:
         if self.options.stream is not None:
             return list(self.options.stream)
-        signals = set(self.world.signals())
+        signals = set(self.world.signals)
         core = self.world.core.name if self.world.core is not None else ""
         wanted = [f"{core}.{b}" for b in ("body_pos", "body_quat", "joint_q", "joint_qd")]
         return [s for s in wanted if s in signals]

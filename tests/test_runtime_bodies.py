@@ -42,7 +42,7 @@ def box(name: str, pos, mass: float = 1.0, size=(0.1, 0.1, 0.1), **kw) -> BodySp
 def state(world: World) -> tuple:
     """The world's whole state, comparable bit for bit (the bus as bytes: an unset velocity is NaN)."""
     snap = world.snapshot()
-    return snap.tick, snap.bus.tobytes(), repr(snap.states), tuple(world.signals())
+    return snap.tick, snap.bus.tobytes(), repr(snap.states), tuple(world.signals)
 
 
 def distance(world: World, body: str, local, point) -> float:
@@ -77,7 +77,7 @@ def test_a_body_added_while_running_falls_and_a_backtick_across_the_add_is_bit_e
     world.tick(100)
     assert state(world) == after  # the same future, bit for bit
     world.backtick(101)  # before the add
-    assert "ball" not in world.core.bodies() and "core.ball.pos" not in world.signals()
+    assert "ball" not in world.core.bodies() and "core.ball.pos" not in world.signals
     assert state(world) == before
     world.close()
 
@@ -110,7 +110,7 @@ def test_remove_body_takes_its_ports_joints_and_connections_and_a_backtick_bring
     world.remove_body("c")  # added at run time
     world.remove_body("b")  # one of the scene's
     assert world.core.objects() == ["floor", "a"] and world.core.selection == ("floor", "a")
-    assert not any(".c." in s or ".b." in s for s in world.signals())
+    assert not any(".c." in s or ".b." in s for s in world.signals)
     world.tick(5)
     world.backtick(5)
     assert world.core.objects() == ["floor", "a"]

@@ -55,7 +55,7 @@ def test_round_trip_runs_bit_for_bit(exported, tmp_path):
     assert "core: null" in text and "period: 2ms" in text and "{delay: true}" in text
     original, imported = load_world(folder / "chain.yaml"), load_world(back.path)
     try:
-        assert imported.signals() == original.signals()
+        assert imported.signals == original.signals
         for _ in range(200):
             original.tick()
             imported.tick()

@@ -160,7 +160,7 @@ def make_task(world: World, *, observe: Sequence[str] | Mapping[str, Bounds | No
     if reward is None:
         raise SpaceError("reward: give a function reward(obs, action) -> float")
     bounds = dict(observe) if isinstance(observe, Mapping) else dict.fromkeys(observe)
-    signals = set(world.signals())
+    signals = set(world.signals)
     core = world.core.name if world.core is not None else None
     obs_boxes = {}
     for name, given in bounds.items():

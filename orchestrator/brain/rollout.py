@@ -286,7 +286,7 @@ class RolloutBackend:
                                   + (" (a velocity input sets the state between MuJoCo steps)"
                                      if col is not None and col.block in HELD_BLOCKS else ""))
             columns[name] = col
-        signals = set(world.signals())
+        signals = set(world.signals)
         for name in {n for t in tasks for n in t.record}:
             full = name if name in signals else f"{ports.core}.{name}"
             col = ports.column(full) if full in signals else None

@@ -75,7 +75,7 @@ def check_module(module: Module, *, core: PhysicsCore | None = None, step: str |
             report.problems.append(f"joining a world failed: {exc}")
             return report
         _check_order(report)
-        inputs = [n for n in world.signals() if n.startswith(module.name + ".") and
+        inputs = [n for n in world.signals if n.startswith(module.name + ".") and
                   world._structure.layout.slots[n].direction == "in" and
                   world._structure.layout.slots[n].port.view_of is None]
         plan = [{n: drive(rng, world._structure.layout.slots[n].shape) for n in inputs} for _ in range(2 * ticks + 5)]

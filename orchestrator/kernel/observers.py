@@ -81,7 +81,7 @@ class WorldView:
         return self._world.get(name)
 
     def signals(self) -> list[str]:
-        return self._world.signals()
+        return self._world.signals
 
     def bus(self) -> np.ndarray:
         """The whole bus as a read-only array (layout from `signal_slots`); the same array object

@@ -170,7 +170,9 @@ class World:
         """Module names in the order they step within a tick."""
         return [step.record.name for step in self._structure.plan]
 
+    @property
     def signals(self) -> list[str]:
+        """Every signal on the bus (``module.port``), like `modules` and `connections` a property."""
         return list(self._structure.layout.slots)
 
     # -- stepping -------------------------------------------------------------------------------------
