@@ -116,6 +116,16 @@ def execute(world: BrainClient, keyframes: list[Keyframe], route: str, robot: st
 
     here = np.array(STAND)
     cube0 = np.asarray(world.get("cube.pos"))
+    stops: list[str] = []  # the robot's safe stops while the plan runs (a missed deadline, a lost brain)
+
+    def on_event(event: dict) -> None:
+        detail = event.get("detail") or {}
+        if event.get("kind") == "robot_status" and detail.get("robot") == robot and detail.get("mode") == "safe_stop":
+            stops.append(str(detail.get("reason")))
+        elif event.get("kind") == "robot_lost" and detail.get("robot") == robot:
+            stops.append("the robot was lost")
+
+    events = world.subscribe_events(on_event) if route != "sim" else None
     try:
         for kf in keyframes:
             t0 = time.monotonic()
@@ -134,6 +144,9 @@ def execute(world: BrainClient, keyframes: list[Keyframe], route: str, robot: st
               "cube_moved_mm": float(np.linalg.norm(np.asarray(world.get("cube.pos")) - cube0)) * 1000}
     if route != "sim":
         report["robot"] = world.robot_status(robot)
+        time.sleep(0.05)  # events still on their way
+        events.undeclare()
+        report["robot_stopped"] = stops[0] if stops else None
     return report
 
 
@@ -141,7 +154,10 @@ def run(world: BrainClient, route: str = "sim", robot: str = "arm", log: Callabl
     keyframes = make_plan(world, log)
     report = execute(world, keyframes, route, robot, log)
     report["tries"] = {kf.name: kf.tries for kf in keyframes}
-    log(f"done: {report['tries']}, joints at {report['joint_q']}, the cube moved {report['cube_moved_mm']:.2f} mm")
+    if report.get("robot_stopped"):
+        log(f"the robot stopped during the plan ({report['robot_stopped']}): the plan was not carried out on it")
+    log(f"{'done' if not report.get('robot_stopped') else 'stopped'}: {report['tries']}, joints at "
+        f"{report['joint_q']}, the cube moved {report['cube_moved_mm']:.2f} mm")
     if "robot" in report:
         shadow = report["robot"]["shadow"]
         log(f"robot: {report['robot']['counts']['forwarded']} commands forwarded, shadow rms "
@@ -157,7 +173,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--robot", default="arm", help="the robot rig's name (dynabrain serve --robot NAME=SERVO)")
     args = ap.parse_args(argv)
     with BrainClient(args.world, connect=args.connect, brain="example-brain") as world:
-        run(world, args.route, args.robot, log=lambda msg: print(msg, flush=True))
+        report = run(world, args.route, args.robot, log=lambda msg: print(msg, flush=True))
+    if report.get("robot_stopped"):
+        raise SystemExit(1)  # the robot did not carry the plan out: not a success
 
 
 if __name__ == "__main__":

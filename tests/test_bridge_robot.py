@@ -177,3 +177,19 @@ def test_losing_the_brain_the_robot_or_the_world_stops_the_robot():
                 assert "safe_stop (world 'arm' lost" in out, out
         finally:
             emu.stop()
+
+
+def test_the_example_brain_says_when_the_robot_stops_during_its_plan(rig):
+    """A safe stop while the plan runs (here a stop command; a missed deadline or a lost brain alike) is
+    told to the brain as an event, and its result says the robot stopped instead of reporting success."""
+    server, brain = rig[0], rig[3]
+    before = brain.robot_status("arm")["counts"]["forwarded"]
+    runner = Process(["-m", "dynabrain.bridge.example_brain", "--connect", server.endpoint, "--route", "both"],
+                     ready="stand:")
+    with runner:
+        wait_for(lambda: brain.robot_status("arm")["counts"]["forwarded"] > before + 20, timeout=30,
+                 what="the plan to reach the robot")
+        brain.robot_stop("arm")
+        code, out = runner.wait(60)
+    assert code == 1, out
+    assert "the robot stopped during the plan" in out and "stopped:" in out, out
