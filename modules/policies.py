@@ -21,14 +21,15 @@ from __future__ import annotations
 import math
 
 from dynabrain.orchestrator.kernel.errors import DynabrainError
-from dynabrain.orchestrator.kernel.module import Module, Param, Port
+from dynabrain.orchestrator.kernel.module import Param
+
+from .reflexes import LegPump
 
 
-class SwingPolicy(Module):
+class SwingPolicy(LegPump):
     """Leg offsets for pumping a swing, from its angle and rate (see the module docstring).
 
-    Inputs ``angle`` (rad) and ``rate`` (rad/s) of the swing's hinge (the core's ``<joint>.q`` and
-    ``.qd``). Outputs ``hip`` and ``knee`` (rad). State: ``level`` (the smoothed drive, -1 to 1).
+    Ports, speed limit and state as every `reflexes.LegPump` (the hand rule's too); only `drive` is its own.
     """
 
     PARAMS = (
@@ -46,27 +47,6 @@ class SwingPolicy(Module):
         if not speed > 0:
             raise DynabrainError(f"module {name!r} [params.speed]: must be positive, got {speed!r}")
 
-    def inputs(self) -> list[Port]:
-        return [Port("angle", (), "rad", "swing angle"), Port("rate", (), "rad/s", "swing angular rate")]
-
-    def outputs(self) -> list[Port]:
-        return [Port("hip", (), "rad"), Port("knee", (), "rad")]
-
-    def start(self, t_ns: int) -> None:
-        self._level = 0.0
-        self.out["hip"][...] = 0.0
-        self.out["knee"][...] = 0.0
-
-    def step(self, t_ns: int, dt_ns: int) -> None:
+    def drive(self, angle: float, rate: float) -> float:
         p = self._param_values
-        drive = math.tanh(p["w_angle"] * float(self.inp["angle"]) + p["w_rate"] * float(self.inp["rate"]) + p["bias"])
-        reach = p["speed"] * dt_ns * 1e-9 / max(abs(p["hip_amplitude"]), abs(p["knee_amplitude"]), 1e-9)
-        self._level += min(max(drive - self._level, -reach), reach)
-        self.out["hip"][...] = p["hip_amplitude"] * self._level
-        self.out["knee"][...] = p["knee_amplitude"] * self._level
-
-    def get_state(self) -> float:
-        return self._level
-
-    def set_state(self, state: float) -> None:
-        self._level = state
+        return math.tanh(p["w_angle"] * angle + p["w_rate"] * rate + p["bias"])

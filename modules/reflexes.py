@@ -79,25 +79,19 @@ class ContactKick(Module):
         self._mode, self._until, self._kicks = state
 
 
-class PhasePump(Module):
-    """Pump a swing with the legs: offsets follow the sign of the swing's angular rate.
+class LegPump(Module):
+    """Pump a swing with the legs: hip and knee offsets ``*_amplitude * level``, where ``level`` follows
+    `drive` (from -1 to 1) at no more than ``speed`` rad/s of the larger amplitude.
 
     Inputs ``angle`` (rad) and ``rate`` (rad/s) of the swing's hinge (the core's ``<joint>.q`` and
-    ``.qd``). Outputs ``hip`` and ``knee`` (rad): ``*_amplitude * level``, where ``level`` follows
-    ``tanh(rate / rate_scale)`` at no more than ``speed`` rad/s of the larger amplitude.
+    ``.qd``). Outputs ``hip`` and ``knee`` (rad), offsets for the servo's ``<joint>.q_ref`` inputs.
+    State: ``level``. A subclass says what the legs aim for (`drive`) and declares the parameters
+    ``hip_amplitude``, ``knee_amplitude`` and ``speed`` among its own.
     """
 
-    PARAMS = (
-        Param("hip_amplitude", 0.6, unit="rad", dimension="angle", runtime=True, doc="hip pitch amplitude"),
-        Param("knee_amplitude", -0.6, unit="rad", dimension="angle", runtime=True, doc="knee amplitude"),
-        Param("rate_scale", 0.1, unit="rad/s", runtime=True, doc="rate at which the legs are two thirds out"),
-        Param("speed", 2.0, unit="rad/s", runtime=True, doc="how fast the offsets may change"),
-    )
-
-    def __init__(self, name: str, **kwargs):
-        super().__init__(name, **kwargs)
-        if not self._param_values["rate_scale"] > 0:
-            raise fail(name, "params.rate_scale", "must be positive")
+    def drive(self, angle: float, rate: float) -> float:
+        """Where the legs aim, from -1 to 1, given the swing's angle and rate."""
+        raise NotImplementedError
 
     def inputs(self) -> list[Port]:
         return [Port("angle", (), "rad", "swing angle"), Port("rate", (), "rad/s", "swing angular rate")]
@@ -112,7 +106,7 @@ class PhasePump(Module):
 
     def step(self, t_ns: int, dt_ns: int) -> None:
         p = self._param_values
-        goal = math.tanh(float(self.inp["rate"]) / p["rate_scale"])
+        goal = self.drive(float(self.inp["angle"]), float(self.inp["rate"]))
         reach = p["speed"] * dt_ns * 1e-9 / max(abs(p["hip_amplitude"]), abs(p["knee_amplitude"]), 1e-9)
         self._level += min(max(goal - self._level, -reach), reach)
         self.out["hip"][...] = p["hip_amplitude"] * self._level
@@ -123,3 +117,23 @@ class PhasePump(Module):
 
     def set_state(self, state: float) -> None:
         self._level = state
+
+
+class PhasePump(LegPump):
+    """The hand-written rule: the legs follow the sign of the swing's angular rate, ``drive =
+    tanh(rate / rate_scale)`` (see `LegPump` for the ports and the speed limit)."""
+
+    PARAMS = (
+        Param("hip_amplitude", 0.6, unit="rad", dimension="angle", runtime=True, doc="hip pitch amplitude"),
+        Param("knee_amplitude", -0.6, unit="rad", dimension="angle", runtime=True, doc="knee amplitude"),
+        Param("rate_scale", 0.1, unit="rad/s", runtime=True, doc="rate at which the legs are two thirds out"),
+        Param("speed", 2.0, unit="rad/s", runtime=True, doc="how fast the offsets may change"),
+    )
+
+    def __init__(self, name: str, **kwargs):
+        super().__init__(name, **kwargs)
+        if not self._param_values["rate_scale"] > 0:
+            raise fail(name, "params.rate_scale", "must be positive")
+
+    def drive(self, angle: float, rate: float) -> float:
+        return math.tanh(rate / self._param_values["rate_scale"])
