@@ -186,7 +186,7 @@ def _register_plugins() -> None:
     log.register(app)
     serve.register(app)
     examples.register(app)
-    ssp.register(app)
+    ssp.register(app, run)
 
 
 _register_plugins()

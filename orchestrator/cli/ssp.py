@@ -13,6 +13,7 @@ file and the element); with ``--run``, those of ``dynabrain run``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -56,9 +57,7 @@ def import_command(
     for note in result.notes:
         console.print(f"  note: {note}", markup=False, soft_wrap=True)
     if run:
-        from .main import run as run_command
-
-        run_command(result.path, realtime=None, duration=None, log=None, live=False, live_rate=0.0, quiet=False)
+        _RUN_COMMAND[0](result.path, realtime=None, duration=None, log=None, live=False, live_rate=0.0, quiet=False)
     else:
         console.print(f"run it: dynabrain run {result.path}", markup=False, soft_wrap=True)
 
@@ -92,6 +91,11 @@ def _folder(paths: tuple[Path, ...]) -> str:
     return str(parents.pop()) if len(parents) == 1 else ", ".join(sorted(str(p) for p in parents))
 
 
-def register(app: typer.Typer) -> None:
-    """Add the ``ssp`` command group to the main CLI."""
+_RUN_COMMAND: list[Callable[..., None]] = []
+"""The main CLI's ``run`` command, handed over by `register` (this file does not import the main one)."""
+
+
+def register(app: typer.Typer, run_command: Callable[..., None]) -> None:
+    """Add the ``ssp`` command group to the main CLI; ``run_command`` is its ``run``, for ``--run``."""
+    _RUN_COMMAND[:] = [run_command]
     app.add_typer(ssp_app, name="ssp")
