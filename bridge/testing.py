@@ -16,7 +16,8 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 
@@ -138,3 +139,19 @@ class EmulatorProcess(Process):
         args = ["-m", "dynabrain.orchestrator.cli", "robot-emulator", scenario, "--world", world,
                 "--connect", connect, *extra]
         super().__init__(args, ready="ready", **kw)
+
+
+def wait_for(predicate: Callable[[], Any], timeout: float = 5.0, what: str = "condition",
+             between: Callable[[], None] | None = None) -> Any:
+    """Poll ``predicate`` every 20 ms until it returns something true, and return that; ``between`` runs
+    between polls. An `AssertionError` naming ``what`` after ``timeout`` seconds (a liveness bound for
+    tests, not a timing)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        value = predicate()
+        if value:
+            return value
+        if between is not None:
+            between()
+        time.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")

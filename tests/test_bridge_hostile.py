@@ -22,7 +22,7 @@ import pytest
 
 from dynabrain.bridge import BadRequestError, BrainClient, TickStoppedError, WorldBusyError, WorldRefusedError
 from dynabrain.bridge import protocol as p
-from dynabrain.bridge.testing import ServerProcess
+from dynabrain.bridge.testing import ServerProcess, wait_for
 from dynabrain.bridge.zenoh_io import Settings, open_session
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -63,14 +63,6 @@ def ask(session, call: str, payload: bytes | str, timeout: float = 10.0) -> tupl
     return False, json.loads(reply.err.payload.to_bytes())
 
 
-def wait_for(predicate, timeout: float = 5.0, what: str = "condition"):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 # -- values -----------------------------------------------------------------------------------------------------

@@ -12,21 +12,13 @@ import pytest
 
 from dynabrain.bridge import BrainClient, WorldRefusedError, frames
 from dynabrain.bridge import protocol as p
-from dynabrain.bridge.testing import EmulatorProcess, Process, ServerProcess
+from dynabrain.bridge.testing import EmulatorProcess, Process, ServerProcess, wait_for
 from dynabrain.bridge.zenoh_io import Settings, open_session
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ARM = os.path.join(ROOT, "bridge", "arm.yaml")
 
 
-def wait_for(predicate, timeout: float = 5.0, what: str = "condition"):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def drive(brain: BrainClient, robot: str, start, goal, seconds: float, route: str = "both", rate: float = 50.0):

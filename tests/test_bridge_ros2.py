@@ -31,7 +31,7 @@ from dynabrain.bridge.ros2 import (
     topic_key,
 )
 from dynabrain.bridge.server import BridgeServer, ServeOptions
-from dynabrain.bridge.testing import ServerProcess
+from dynabrain.bridge.testing import ServerProcess, wait_for
 from dynabrain.bridge.zenoh_io import Settings, open_session
 from dynabrain.orchestrator.scenario import load_world
 
@@ -48,16 +48,6 @@ CODEC = Codec()
 T = CODEC.types
 
 
-def wait_for(predicate, timeout: float = 5.0, what: str = "condition", between=None):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        value = predicate()
-        if value:
-            return value
-        if between is not None:
-            between()
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 class Peer:

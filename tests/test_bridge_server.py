@@ -27,7 +27,7 @@ from dynabrain.bridge import (
     WorldRestartedError,
 )
 from dynabrain.bridge import protocol as p
-from dynabrain.bridge.testing import Process, ServerProcess
+from dynabrain.bridge.testing import Process, ServerProcess, wait_for
 from dynabrain.bridge.zenoh_io import Settings, open_session
 from dynabrain.orchestrator.kernel.world import World
 from dynabrain.orchestrator.scenario import load_world
@@ -51,13 +51,6 @@ def brain(server):
         yield b
 
 
-def wait_for(predicate, timeout: float = 5.0, what: str = "condition") -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
 def local_values(world: World, names) -> np.ndarray:
