@@ -22,14 +22,7 @@ from dynabrain.orchestrator.logs.read import read_index
 from dynabrain.orchestrator.logs.verify import verify
 from dynabrain.orchestrator.scenario.model import load_scenario
 
-SLIDER = """name: slider
-world: {step: 2ms, duration: 2s, core: mujoco}
-core: {friction: 0.5}
-scene:
-  - plane: {name: floor}
-  - box: {name: cart, size: [0.1, 0.1, 0.1], mass: 1, pos: [0, 0, 0.05],
-          joint: {slide: {name: s, axis: [1, 0, 0], damping: 2}}}
-"""
+SLIDER = Path(__file__).resolve().parent / "scenarios" / "slider.yaml"
 DT = 2_000_000
 FORCES = (-2.0, 0.0, 2.0)
 RECORD = ["core.cart.pos", "core.cart.quat", "core.s.q"]
@@ -53,8 +46,7 @@ def session(tmp_path_factory):
     """A brain's logged session on a slider: a batch of three pushes (branches 0 and 2 kept), then a
     plan (kept), then a rollback within the window and one beyond it."""
     tmp = tmp_path_factory.mktemp("imagined")
-    (tmp / "slider.yaml").write_text(SLIDER)
-    sc = load_scenario(tmp / "slider.yaml")
+    sc = load_scenario(SLIDER)
     world = sc.build()
     McapLogger(tmp / "run.mcap", window=8, batch=4).attach(world, sc)
     world.tick(20)

@@ -3,29 +3,22 @@ world, gives the predicted outcome bit for bit; failures and exhausted budgets a
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from dynabrain.orchestrator import DynabrainError, load_world
 from dynabrain.orchestrator.brain.plan import Action, search
 
-SLIDER = """name: slider
-world: {step: 2ms, duration: 2s, core: mujoco}
-core: {friction: 0.5}
-scene:
-  - plane: {name: floor}
-  - box: {name: cart, size: [0.1, 0.1, 0.1], mass: 1, pos: [0, 0, 0.05],
-          joint: {slide: {name: s, axis: [1, 0, 0], damping: 2}}}
-"""
+SLIDER = Path(__file__).resolve().parent / "scenarios" / "slider.yaml"
 TARGET = 0.3
 PUSHES = [Action(f"push {f:+g} N", 50, inputs={"core.s.force": f}) for f in (-4.0, -1.0, 0.0, 1.0, 4.0)]
 
 
 @pytest.fixture
-def slider(tmp_path):
-    path = tmp_path / "slider.yaml"
-    path.write_text(SLIDER)
-    world = load_world(path)
+def slider():
+    world = load_world(SLIDER)
     yield world
     world.close()
 
