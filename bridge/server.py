@@ -48,6 +48,8 @@ from .streams import EventSink, StateStream
 from .zenoh_io import FRAME, JSON, Settings, open_session, payload_bytes
 
 if TYPE_CHECKING:
+    from dynabrain.orchestrator.logs.live import LiveOptions, LiveView
+
     from .ros2 import Ros2Bridge, Ros2Options
 
 _log = logging.getLogger("dynabrain.bridge")
@@ -86,6 +88,8 @@ class ServeOptions:
     """Most seconds of silence a hold lasts while its brain has no liveliness token."""
     ros2: Ros2Options | None = None
     """Also show the world to ROS 2 nodes on rmw_zenoh (`ros2`): joint states, /tf, /clock, joint commands."""
+    live: LiveOptions | None = None
+    """Also serve the world to Foxglove (`logs.live`): its /bus, /tf, /scene and events as brains drive it."""
 
 
 @dataclass
@@ -141,11 +145,19 @@ class BridgeServer:
         self._fork_count = 0
         self._handlers = p.handlers(self, server=True)
         self.ros2: Ros2Bridge | None = None
+        self.live: LiveView | None = None
 
     # -- lifecycle ------------------------------------------------------------------------------------------
     def open(self) -> list[str]:
-        """Open the session and declare everything; returns the endpoints clients connect to."""
-        self.session, self.endpoints = open_session(self.settings)
+        """Open the session and declare everything; returns the endpoints clients connect to. The live view
+        (``options.live``) starts first: a port in use raises before anything is declared."""
+        if self.options.live is not None:
+            self.live = self.options.live.start(self.world)
+        try:
+            self.session, self.endpoints = open_session(self.settings)
+        except BaseException:
+            self._close_live()
+            raise
         try:
             self._declare()
         except BaseException:
@@ -210,6 +222,7 @@ class BridgeServer:
     def close(self) -> None:
         """Stop the loop, tell robots to stop, undeclare everything, close forks and the session. The
         served World itself stays open (its owner closes it)."""
+        self._close_live()
         if self.session is None:
             return
         with contextlib.suppress(Exception):
@@ -241,6 +254,13 @@ class BridgeServer:
             self.events.close()
         session, self.session = self.session, None
         session.close()
+
+    def _close_live(self) -> None:
+        live, self.live = self.live, None
+        if live is not None:
+            with contextlib.suppress(ValueError):
+                self.world.unobserve(live)
+            live.close()
 
     def __enter__(self) -> BridgeServer:
         self.open()

@@ -46,16 +46,23 @@ class RunOutputs:
 
 
 def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: bool, console: Console,
-                       live_rate_hz: float = 0.0) -> RunOutputs:
+                       live_rate_hz: float = 0.0, live_port: int | None = None,
+                       ros2_schemas: bool = False) -> RunOutputs:
     """Attach the MCAP logger (``--log FILE``, else the scenario's ``log: {mcap: FILE}``, resolved against
-    the scenario's folder) and the live view (``--live``; ``live_rate_hz``: ticks sent per simulated
-    second, 0 for every tick) a run asks for."""
+    the scenario's folder; ``ros2_schemas`` or the scenario's ``log: {ros2_schemas: true}``: also ROS 2
+    messages) and the live view (``--live``; ``live_rate_hz``: ticks sent per simulated second, 0 for every
+    tick; ``live_port``: ``--live-port``) a run asks for."""
     from ..logs.logger import McapLogger
 
     cfg = scenario.model.log
     path = os.fspath(log) if log is not None else None
     if path is None and cfg.mcap:
         path = cfg.mcap if os.path.isabs(cfg.mcap) else os.path.join(scenario.dir, cfg.mcap)
+    view = None
+    if live:  # first: a port in use stops the run before anything is recorded
+        view = live_options(live_port, live_rate_hz, world.dt_ns).start(world)
+        console.print(f"live view: {view.url} (Foxglove: Open connection > Foxglove WebSocket), "
+                      f"{live_rate(view.every, world.dt_ns)}", markup=False)
     logger = None
     if path is not None:
         folder = os.path.dirname(os.path.abspath(path))
@@ -64,21 +71,38 @@ def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: boo
         except OSError as exc:
             raise DynabrainError(f"cannot create the folder of the log {path}: {exc.strerror}") from None
         # a scenario run never backticks (a failed tick discards nothing): no window needed
-        logger = McapLogger(path, decimate=cfg.decimate, window=0).attach(world, scenario)
-        console.print(f"recording to {path}", markup=False)
-    view = None
-    if live:
-        from ..logs.live import DEFAULT_PORT, LiveView
-
-        port = os.environ.get(LIVE_PORT_ENV, str(DEFAULT_PORT))
-        if not port.isdigit():
-            raise DynabrainError(f"{LIVE_PORT_ENV}={port!r} is not a port number")
-        every = max(1, round(1e9 / (live_rate_hz * world.dt_ns))) if live_rate_hz > 0 else 1
-        view = LiveView(port=int(port), every=every).attach(world)
-        rate = f"{1e9 / (every * world.dt_ns):g} Hz of simulated time" + (" (every tick)" if every == 1 else "")
-        console.print(f"live view: {view.url} (Foxglove: Open connection > Foxglove WebSocket), {rate}",
-                      markup=False)
+        ros2 = ros2_schemas or bool(getattr(cfg, "ros2_schemas", False))
+        logger = McapLogger(path, decimate=cfg.decimate, window=0, **({"ros2": True} if ros2 else {})
+                            ).attach(world, scenario)
+        console.print(f"recording to {path}" + (" (with ROS 2 messages)" if ros2 else ""), markup=False)
     return RunOutputs(logger, view, console)
+
+
+def live_options(port: int | None, rate_hz: float = 0.0, dt_ns: int = 1) -> Any:
+    """The live view's `LiveOptions`: the port of ``--live-port``, else of ``DYNABRAIN_LIVE_PORT``, else 8765
+    (then a port in use means another free one); ``rate_hz``: ticks sent per simulated second (0: all)."""
+    from ..logs.live import DEFAULT_PORT, LiveOptions
+
+    option: str | None = "--live-port"
+    if port is None:
+        text = os.environ.get(LIVE_PORT_ENV)
+        option = LIVE_PORT_ENV if text is not None else None
+        if text is not None and not text.isdigit():
+            raise DynabrainError(f"{LIVE_PORT_ENV}={text!r} is not a port number")
+        port = int(text) if text is not None else DEFAULT_PORT
+    if not 0 <= port <= 65535:
+        raise DynabrainError(f"{option} {port} is not a port number (0 to 65535; 0: any free port)")
+    every = max(1, round(1e9 / (rate_hz * dt_ns))) if rate_hz > 0 else 1
+    return LiveOptions(port=port, port_option=option, every=every)
+
+
+def live_rate(every: int, dt_ns: int) -> str:
+    return f"{1e9 / (every * dt_ns):g} Hz of simulated time" + (" (every tick)" if every == 1 else "")
+
+
+LivePortOpt = Annotated[int | None, typer.Option(
+    "--live-port", help=f"--live: the WebSocket port (default ${LIVE_PORT_ENV}, else 8765, else any free one; "
+                        "0: any free port); a port asked for and in use is an error")]
 
 
 # -- commands -------------------------------------------------------------------------------------------
@@ -89,26 +113,74 @@ def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
            listen: Annotated[list[str] | None, typer.Option(help="--publish: Zenoh endpoint to listen on "
                                                             "(default tcp/127.0.0.1:7447)")] = None,
            connect: Annotated[list[str] | None, typer.Option(help="--publish: Zenoh endpoint to connect to")] = None,
+           live: Annotated[bool, typer.Option(
+               "--live", help="play the log to Foxglove over WebSocket (loopback), at --speed, once a client "
+                              "subscribes; with --publish both at once")] = False,
+           live_port: LivePortOpt = None,
            events: Annotated[int, typer.Option(help="how many events to list")] = 40) -> None:
-    """Summarize a log (duration, channels, events); --verify re-simulates it and compares bit for bit."""
+    """Summarize a log (duration, channels, events); --verify re-simulates it and compares bit for bit;
+    --publish plays it over Zenoh, --live to Foxglove."""
     from ..logs.read import read_index
     from ..logs.replay import summarize
 
     with _bad_input():
         for line in summarize(read_index(log), max_events=events):
             out.print(line, markup=False)
-        if publish:
-            from dynabrain.bridge import publish_recording
-
-            if listen or connect:
-                from dynabrain.bridge.zenoh_io import Settings
-
-                settings = Settings(listen=listen or [], connect=connect or [])
-                publish_recording(os.fspath(log), speed=speed, settings=settings)
-            else:
-                publish_recording(os.fspath(log), speed=speed)
+        view = _live_replay(log, live_port, speed) if live else None
+        try:
+            if view is not None and not publish:
+                _play(view)
+            elif publish:
+                thread = _play_beside(view)
+                _publish(log, speed, listen, connect)
+                if thread is not None:
+                    thread.join()
+            if view is not None and sys.stdin.isatty():
+                out.print(f"live view: the log is over; still serving {view.url}; press Enter to stop", markup=False)
+                with suppress(EOFError, KeyboardInterrupt):
+                    input()
+        finally:
+            if view is not None:
+                view.close()
         if verify:
             _verify(log)
+
+
+def _live_replay(log: Path, port: int | None, speed: float) -> Any:
+    from ..logs.replay import LogView
+
+    options = live_options(port)
+    view = LogView(log, port=options.port, port_option=options.port_option, speed=speed).start()
+    out.print(f"live view: {view.url} (Foxglove: Open connection > Foxglove WebSocket); plays once a client "
+              "subscribes", markup=False)
+    return view
+
+
+def _play(view: Any) -> None:
+    result = view.play()
+    out.print(f"live view: played {result.messages} messages in {result.wall_s:.3f} s", markup=False)
+
+
+def _play_beside(view: Any) -> Any:
+    """The live view's replay on a thread of its own (beside the Zenoh one)."""
+    if view is None:
+        return None
+    import threading
+
+    thread = threading.Thread(target=_play, args=(view,), daemon=True, name="dynabrain-replay-live")
+    thread.start()
+    return thread
+
+
+def _publish(log: Path, speed: float, listen: list[str] | None, connect: list[str] | None) -> None:
+    from dynabrain.bridge import publish_recording
+
+    if listen or connect:
+        from dynabrain.bridge.zenoh_io import Settings
+
+        publish_recording(os.fspath(log), speed=speed, settings=Settings(listen=listen or [], connect=connect or []))
+    else:
+        publish_recording(os.fspath(log), speed=speed)
 
 
 def _verify(log: Path) -> None:

@@ -1,5 +1,7 @@
 """The ``dynabrain`` command line. Exit codes: 0 ok, 1 an expectation failed or a run failed,
-2 bad input (a scenario that does not validate).
+2 bad input (a scenario that does not validate). A run that ends early because a module asked to end
+the simulation (an FMU's terminate request) ended normally: 0 when its expectations hold (one it did
+not reach fails, so 1), never 1 for the request itself.
 
 Options before the command: ``--version``; ``-v`` / ``--verbose`` (dynabrain's log messages from INFO
 on, ``-vv`` from DEBUG; by default warnings and errors), ``-q`` / ``--quiet`` (errors only, and no
@@ -69,6 +71,11 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
                                                         "paces it at real time unless --no-realtime"),
         live_rate: float = typer.Option(0.0, "--live-rate", min=0.0,
                                         help="--live: ticks sent per simulated second (0: every tick)"),
+        live_port: int | None = typer.Option(None, "--live-port", help="--live: the WebSocket port (default "
+                                             "$DYNABRAIN_LIVE_PORT, else 8765, else any free one; 0: any free "
+                                             "port); a port asked for and in use is an error"),
+        ros2_schemas: bool = typer.Option(False, "--ros2-schemas", help="--log: also write /joint_states, /clock "
+                                          "and /tf as ROS 2 messages (CDR, ros2msg schemas) for rosbag2 tools"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar")) -> None:
     """Run a scenario to its end and check its expectations."""
     scenario = resolve_scenario(scenario)
@@ -85,7 +92,8 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
     from .log import attach_run_outputs
 
     try:
-        outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console, live_rate_hz=live_rate)
+        outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console, live_rate_hz=live_rate,
+                                     live_port=live_port, ros2_schemas=ros2_schemas)
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[t]}"),
                       TimeRemainingColumn(), console=console, transient=True, disable=quiet or _quiet) as bar:
             task = bar.add_task(sc.model.name, total=sc.duration_ns // world.dt_ns, t="")
@@ -119,6 +127,8 @@ def _summary(result: RunResult, history: str) -> None:
     console.print(f"history: {history}", markup=False)
     if result.error:
         console.print(f"[bold red]run stopped:[/] {escape(result.error)}")
+    if result.ended:
+        console.print(f"[bold]run ended:[/] {escape(result.ended)}")
     if result.expectations:
         table = Table(show_header=True, header_style="bold")
         table.add_column("check")

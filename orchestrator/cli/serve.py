@@ -15,6 +15,8 @@ import typer
 from ..kernel.errors import DynabrainError, ScenarioError
 from ..kernel.units import parse_duration_ns
 from .common import fail_scenario, load_or_exit
+from .log import LivePortOpt, live_options
+from .log import live_rate as live_rate_text
 
 ListenOpt = Annotated[list[str] | None, typer.Option(
     "--listen", help="endpoint to listen on (repeatable); port 0 picks a free port (default: tcp/127.0.0.1:7447)")]
@@ -127,8 +129,14 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
               "--ros2", help="also speak ROS 2 (rmw_zenoh, Jazzy): /clock, /tf, joint_states, and joint commands to "
                              "each --robot; domain from ROS_DOMAIN_ID")] = False,
           ros2_rate: Annotated[float, typer.Option(
-              "--ros2-rate", help="ROS 2 messages per second of simulated time")] = 100.0) -> None:
-    """Serve a world over Zenoh to remote brains (and robots) until interrupted."""
+              "--ros2-rate", help="ROS 2 messages per second of simulated time")] = 100.0,
+          live: Annotated[bool, typer.Option(
+              "--live", help="also serve the world to Foxglove over WebSocket (loopback): /bus, /tf, /scene and "
+                             "events as brains drive it")] = False,
+          live_port: LivePortOpt = None,
+          live_rate: Annotated[float, typer.Option(
+              "--live-rate", min=0.0, help="--live: ticks sent per simulated second (0: every tick)")] = 0.0) -> None:
+    """Serve a world over Zenoh to remote brains (and robots) until interrupted; --live also to Foxglove."""
     from dynabrain.bridge.batching import BatchSettings
     from dynabrain.bridge.calls import DEFAULT_ALLOW_PYTHON
     from dynabrain.bridge.server import BridgeServer, ServeOptions
@@ -138,14 +146,18 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
     batch = BatchSettings(batch_backend, batch_workers, batch_max_ticks)
     ros2_options = _ros2_options(ros2_rate) if ros2 else None
     sc, world = _build(scenario)
+    live_opts = live_options(live_port, live_rate, world.dt_ns) if live else None
     options = ServeOptions(name=name, stream=stream, decimate=decimate, robots=_robots(robot),
                            deadline_ns=parse_duration_ns(deadline), base_dir=sc.dir,
                            allow_python=DEFAULT_ALLOW_PYTHON if allow_python is None else allow_python, batch=batch,
                            tokenless_lease_s=_positive_seconds(tokenless_lease, "--tokenless-lease"),
-                           trial_params=trial_params, ros2=ros2_options)
+                           trial_params=trial_params, ros2=ros2_options, live=live_opts)
     server = BridgeServer(world, settings, options)
     try:
         endpoints = server.open()
+        if server.live is not None:
+            print(f"live view: {server.live.url} (Foxglove: Open connection > Foxglove WebSocket), "
+                  f"{live_rate_text(server.live.every, world.dt_ns)}", flush=True)
         if start:
             server.loop.start(realtime, None)
         where = " ".join(endpoints) or f"(through {' '.join(settings.connect) or 'the configured router'})"

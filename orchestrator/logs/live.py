@@ -26,6 +26,7 @@ import logging
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 from typing import Any
 
 import foxglove
@@ -57,6 +58,118 @@ _log = logging.getLogger("dynabrain.mcap")
 DEFAULT_PORT = 8765
 KEEP_EVENTS = 100
 """Events a client that subscribes late still gets (the latest ones)."""
+SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.sdk.v1.1")
+"""The WebSocket subprotocols the server accepts (foxglove-sdk's own; see the module docstring), checked by
+tests/test_live_serve.py, so that an SDK that starts accepting ``foxglove.websocket.v1`` is noticed."""
+
+
+@dataclass(frozen=True)
+class LiveOptions:
+    """Where and how often a live view serves: ``dynabrain run --live``, ``serve --live``, ``replay --live``.
+
+    ``port``: 0 asks for any free port; ``port_option``: the option or variable that asked for this port
+    (``--live-port``, ``DYNABRAIN_LIVE_PORT``): a port in use is then an error naming it; without one (the
+    default port) the view takes another free port and says so. ``every``: send every that many ticks."""
+
+    port: int = DEFAULT_PORT
+    port_option: str | None = None
+    every: int = 1
+    host: str = "127.0.0.1"
+
+    def start(self, world: Any) -> LiveView:
+        """A `LiveView` of ``world``, serving (a port in use raises `DynabrainError`; the world is untouched)."""
+        return LiveView(host=self.host, port=self.port, every=self.every, port_option=self.port_option).attach(world)
+
+
+def check_host(host: str) -> str:
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        raise DynabrainError(f"the live view serves on loopback only, not on {host!r}")
+    return host
+
+
+class FoxgloveServer:
+    """foxglove-sdk's WebSocket server with the channels of one view, which keeps the latest message of each
+    channel (the recent ones of the events channel) and sends them to a client that subscribes late. Used
+    by `LiveView` (a world) and `logs.replay.LogView` (a recorded run)."""
+
+    def __init__(self, name: str = "dynabrain", keep_events: int = KEEP_EVENTS):
+        self.name = name
+        self.ctx: Any = foxglove.Context()
+        self.server: Any = None
+        self.events: Any = None
+        """The channel whose recent messages (not only the latest) a late subscriber gets."""
+        self.subscribed = threading.Event()
+        """Set once a client has subscribed to a channel."""
+        self._lock = threading.Lock()  # the latest messages, and sending them
+        self._latest: dict[int, tuple[bytes, int]] = {}  # channel id -> its latest message and log time
+        self._recent: deque[tuple[bytes, int]] = deque(maxlen=keep_events)
+        self._channels: dict[int, Any] = {}
+
+    def channel(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
+                message_encoding: str, metadata: dict[str, str] | None = None, events: bool = False) -> Any:
+        schema = foxglove.Schema(name=schema_name, encoding=schema_encoding, data=schema_data) if schema_name else None
+        ch = foxglove.Channel(topic, schema=schema, message_encoding=message_encoding, context=self.ctx,
+                              metadata=metadata)
+        self._channels[ch.id()] = ch
+        if events:
+            self.events = ch
+        return ch
+
+    def proto_channel(self, topic: str, message_class: type, events: bool = False) -> Any:
+        return self.channel(topic, message_class.DESCRIPTOR.full_name, "protobuf", foxglove_descriptor(message_class),
+                            "protobuf", events=events)
+
+    def drop(self, channel: Any) -> None:
+        """Close a channel (its topic goes away for clients)."""
+        with self._lock:
+            self._latest.pop(channel.id(), None)
+            self._channels.pop(channel.id(), None)
+        channel.close()
+
+    def send(self, channel: Any, data: bytes, t_ns: int) -> None:
+        with self._lock:
+            if channel is self.events:
+                self._recent.append((data, t_ns))
+            else:
+                self._latest[channel.id()] = (data, t_ns)
+            channel.log(data, log_time=t_ns)
+
+    def start(self, host: str, port: int, port_option: str | None = None) -> Any:
+        """Start serving on ``host:port`` (see `LiveOptions` for a port in use)."""
+        listener = _Latest(self)
+        try:
+            self.server = foxglove.start_server(name=self.name, host=host, port=port, context=self.ctx,
+                                                server_listener=listener)
+        except RuntimeError as exc:
+            taken = "bind" in str(exc).lower()
+            if port == 0 or not taken:
+                raise DynabrainError(f"the live view cannot start its WebSocket server: {exc}") from None
+            if port_option is not None:
+                raise DynabrainError(f"the live view cannot listen on {host}:{port} ({port_option} {port}): the port "
+                                     "is in use; choose another (0: any free port)") from None
+            _log.warning("port %s is taken; the live view uses another", port)
+            self.server = foxglove.start_server(name=self.name, host=host, port=0, context=self.ctx,
+                                                server_listener=listener)
+        return self.server
+
+    def close(self) -> None:
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+
+    def catch_up(self, client_id: int, channel_id: int) -> None:
+        """Send a client that subscribed to a channel its latest message (the recent ones: events)."""
+        with self._lock:
+            channel = self._channels.get(channel_id)
+            if channel is None:
+                return
+            if channel is self.events:
+                for data, t_ns in self._recent:
+                    channel.log(data, log_time=t_ns, sink_id=client_id)
+                return
+            latest = self._latest.get(channel_id)
+            if latest is not None:
+                channel.log(latest[0], log_time=latest[1], sink_id=client_id)
 
 
 class LiveView(Observer):
@@ -64,30 +177,28 @@ class LiveView(Observer):
 
     ``every``: send every that many ticks; ``max_rate_hz``: at most that many times per wall-clock second
     (0: no cap); ``scene_every_s``: send the scene again that often (None: only when it changes and to new
-    subscribers); ``keep_events``: events kept for late subscribers.
+    subscribers); ``keep_events``: events kept for late subscribers; ``port_option``: see `LiveOptions`.
     """
 
     def __init__(self, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, every: int = 1,
                  max_rate_hz: float = 0.0, scene_every_s: float | None = None, keep_events: int = KEEP_EVENTS,
-                 name: str = "dynabrain"):
-        if host not in ("127.0.0.1", "localhost", "::1"):
-            raise DynabrainError(f"the live view serves on loopback only, not on {host!r}")
+                 name: str = "dynabrain", port_option: str | None = None):
+        check_host(host)
         if isinstance(every, bool) or not isinstance(every, int) or every < 1:
             raise DynabrainError(f"the live view's every must be a whole number of ticks >= 1, got {every!r}")
         self.host, self.requested_port, self.name, self.every = host, port, name, every
+        self.port_option = port_option
         self.min_interval = 1.0 / max_rate_hz if max_rate_hz > 0 else 0.0
         self.scene_every_s = scene_every_s
-        self.server: Any = None
         self.origin_ns = 0
         """The log time of tick 0 (as in a log: the wall-clock time at `attach`, less that tick's simulated time)."""
         self.sent = 0
         """Ticks sent."""
-        self._ctx: Any = None
+        self._fox = FoxgloveServer(name, keep_events)
         self._numbers = FieldNumbers()
         self._codecs: dict[tuple, BusCodec] = {}
         self._codec: BusCodec | None = None
         self._bus: Any = None
-        self._bus_channels: dict[int, Any] = {}
         self._dirty = True
         self._last = -1e9
         self._last_scene = -1e9
@@ -99,9 +210,11 @@ class LiveView(Observer):
         self._tf: Any = None
         self._scene_ch: Any = None
         self._events: Any = None
-        self._lock = threading.Lock()  # the latest messages, and sending them
-        self._latest: dict[int, tuple[bytes, int]] = {}  # channel id -> its latest message and log time
-        self._recent: deque[tuple[bytes, int]] = deque(maxlen=keep_events)
+
+    @property
+    def server(self) -> Any:
+        """foxglove-sdk's server (None once closed)."""
+        return self._fox.server
 
     @property
     def port(self) -> int:
@@ -112,39 +225,22 @@ class LiveView(Observer):
         return f"ws://{self.host}:{self.port}"
 
     def attach(self, world: Any) -> LiveView:
+        """Start serving ``world``; a port in use raises `DynabrainError` before the view observes it."""
         with world.lock():
-            self._ctx = foxglove.Context()
+            fox = self._fox
             self._dt = world.dt_ns
             view = WorldView(world)
             self.origin_ns = time.time_ns() - view.tick * self._dt
-            self._events = self._proto_channel(TOPIC_EVENTS, Log)
+            self._events = fox.proto_channel(TOPIC_EVENTS, Log, events=True)
             if view.core is not None:
                 self._poses = PoseCodec(view.core.bodies())
                 self._scene = SceneDrawing(view.core)
-                self._tf = self._proto_channel(TOPIC_TF, FrameTransforms)
-                self._scene_ch = self._proto_channel(TOPIC_SCENE, SceneUpdate)
+                self._tf = fox.proto_channel(TOPIC_TF, FrameTransforms)
+                self._scene_ch = fox.proto_channel(TOPIC_SCENE, SceneUpdate)
             self._publish(view)
-            self.server = self._start()
+            fox.start(self.host, self.requested_port, self.port_option)
             world.observe(self)
         return self
-
-    def _start(self) -> Any:
-        listener = _Latest(self)
-        try:
-            return foxglove.start_server(name=self.name, host=self.host, port=self.requested_port, context=self._ctx,
-                                         server_listener=listener)
-        except RuntimeError as exc:
-            if self.requested_port == 0 or "bind" not in str(exc).lower():
-                raise DynabrainError(f"the live view cannot start its WebSocket server: {exc}") from None
-            _log.warning("port %s is taken; the live view uses another", self.requested_port)
-            return foxglove.start_server(name=self.name, host=self.host, port=0, context=self._ctx,
-                                         server_listener=listener)
-
-    def _proto_channel(self, topic: str, message_class: type, metadata: dict[str, str] | None = None) -> Any:
-        schema = foxglove.Schema(name=message_class.DESCRIPTOR.full_name, encoding="protobuf",
-                                 data=foxglove_descriptor(message_class))
-        return foxglove.Channel(topic, schema=schema, message_encoding="protobuf", context=self._ctx,
-                                metadata=metadata)
 
     # -- observer hooks -------------------------------------------------------------------------------
     def on_tick(self, view: WorldView) -> None:
@@ -175,9 +271,7 @@ class LiveView(Observer):
         self.close()
 
     def close(self) -> None:
-        if self.server is not None:
-            self.server.stop()
-            self.server = None
+        self._fox.close()
 
     # -- publishing -----------------------------------------------------------------------------------
     def _publish(self, view: WorldView) -> None:
@@ -187,25 +281,20 @@ class LiveView(Observer):
         tick = view.tick
         t_ns = self.origin_ns + tick * self._dt
         row = bus[None, :]
-        self._send(self._bus, self._codec.encode(row, [tick], [self._epoch], self._dt)[0].tobytes(), t_ns)
+        send = self._fox.send
+        send(self._bus, self._codec.encode(row, [tick], [self._epoch], self._dt)[0].tobytes(), t_ns)
         if self._poses is not None:
             ext = row
             if self._missing:
                 extra = np.concatenate([np.concatenate(view.core.body_pose(b)) for b in self._missing])
                 ext = np.concatenate([row, extra[None, :]], axis=1)
             pose = ext[:, self._cols]
-            self._send(self._tf, self._poses.encode(pose[:, :, :3], pose[:, :, 3:], np.array([t_ns]))[0].tobytes(),
-                       t_ns)
+            send(self._tf, self._poses.encode(pose[:, :, :3], pose[:, :, 3:], np.array([t_ns]))[0].tobytes(), t_ns)
             now = time.monotonic()
             if self._scene_due or (self.scene_every_s is not None and now - self._last_scene >= self.scene_every_s):
                 self._scene_due, self._last_scene = False, now
-                self._send(self._scene_ch, self._scene.encode(t_ns), t_ns)
+                send(self._scene_ch, self._scene.encode(t_ns), t_ns)
         self.sent += 1
-
-    def _send(self, channel: Any, data: bytes, t_ns: int) -> None:
-        with self._lock:
-            self._latest[channel.id()] = (data, t_ns)
-            channel.log(data, log_time=t_ns)
 
     def _new_layout(self, view: WorldView) -> None:
         slots, size = view.signal_slots(), view.bus().size
@@ -215,12 +304,9 @@ class LiveView(Observer):
             codec = self._codecs[signature] = BusCodec.from_view(slots, size, self._numbers, len(self._codecs) + 1)
         if codec is not self._codec:
             if self._bus is not None:  # one schema per topic: the old layout's topic goes away
-                with self._lock:
-                    self._latest.pop(self._bus.id(), None)
-                self._bus.close()
-            schema = foxglove.Schema(name=codec.schema_name, encoding="protobuf", data=codec.descriptor())
-            self._bus = foxglove.Channel(bus_topic(codec.key), schema=schema, message_encoding="protobuf",
-                                         context=self._ctx, metadata=codec.metadata())
+                self._fox.drop(self._bus)
+            self._bus = self._fox.channel(bus_topic(codec.key), codec.schema_name, "protobuf", codec.descriptor(),
+                                          "protobuf", codec.metadata())
             self._codec = codec
         if self._poses is not None:
             self._cols, self._missing = pose_columns(view.core.name, self._poses.bodies, self._codec)
@@ -231,32 +317,18 @@ class LiveView(Observer):
         body = {"seq": self._seq, "tick": tick, "time": tick * self._dt / 1e9, "epoch": self._epoch, "kind": kind,
                 "source": source, "detail": detail}
         t_ns = self.origin_ns + tick * self._dt
-        data = log_message(t_ns, event_level(kind, detail), event_bytes(body).decode(), kind)
-        with self._lock:
-            self._recent.append((data, t_ns))
-            self._events.log(data, log_time=t_ns)
-
-    def _catch_up(self, client_id: int, channel_id: int) -> None:
-        """Send a client that subscribed to a channel its latest message (the recent ones: events)."""
-        with self._lock:
-            if self._events is not None and channel_id == self._events.id():
-                for data, t_ns in self._recent:
-                    self._events.log(data, log_time=t_ns, sink_id=client_id)
-                return
-            latest = self._latest.get(channel_id)
-            channel = next((c for c in (self._bus, self._tf, self._scene_ch) if c is not None and c.id() == channel_id),
-                           None)
-            if latest is not None and channel is not None:
-                channel.log(latest[0], log_time=latest[1], sink_id=client_id)
+        self._fox.send(self._events, log_message(t_ns, event_level(kind, detail), event_bytes(body).decode(), kind),
+                       t_ns)
 
 
 class _Latest(ServerListener):
-    """Tells the view about each subscription; the view answers from a thread of its own (the server
-    calls this on its own thread, where sending is not safe to do under the view's lock)."""
+    """Tells the server about each subscription; it answers from a thread of its own (the SDK calls this on
+    its own thread, where sending is not safe to do under the server's lock)."""
 
-    def __init__(self, view: LiveView):
-        self.view = view
+    def __init__(self, fox: FoxgloveServer):
+        self.fox = fox
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
-        threading.Thread(target=self.view._catch_up, args=(client.id, channel.id), daemon=True,
+        self.fox.subscribed.set()
+        threading.Thread(target=self.fox.catch_up, args=(client.id, channel.id), daemon=True,
                          name="dynabrain-live-catch-up").start()

@@ -1,17 +1,25 @@
-"""``dynabrain replay LOG``: what a log holds (duration, channels, events), and ``--publish``.
+"""``dynabrain replay LOG``: what a log holds (duration, channels, events), ``--publish`` and ``--live``.
 
 The summary reads any MCAP file; for a dynabrain log it adds the run's metadata, the run's tick range
 (after rollbacks), and its events. ``--publish`` is the bridge's (`dynabrain.bridge.publish_recording`),
-called by the CLI: this room does not import the bridge.
+called by the CLI: this room does not import the bridge. ``--live`` is `LogView`: the log played to
+Foxglove through the live view's server (`logs.live.FoxgloveServer`).
 """
 
 from __future__ import annotations
 
 import json
+import math
+import os
+import threading
+import time
 from collections import Counter
+from dataclasses import dataclass
 
-from .read import LogIndex
-from .schema import DISCARDED, TOPIC_BUS
+from ..kernel.errors import DynabrainError
+from .read import LogIndex, read_index
+from .scan import Message, scan
+from .schema import DISCARDED, TOPIC_BUS, TOPIC_EVENTS
 
 QUIET_KINDS = ("layout",)
 """Event kinds left out of the event list (they are counted)."""
@@ -93,3 +101,87 @@ def describe(event: dict) -> str:
         return f"{d.get('topic')}: {d.get('ticks')} ticks from tick {d.get('start_tick')}"
     text = json.dumps(d, separators=(", ", ": "))
     return text if len(text) < 100 else text[:97] + "..."
+
+
+# -- a log played to Foxglove ------------------------------------------------------------------------------
+SETTLE_S = 0.05
+"""After a client's first subscription, how long playing waits for no further one (its other channels)."""
+
+
+@dataclass
+class LogViewResult:
+    messages: int
+    wall_s: float
+
+
+class LogView:
+    """A recorded run played to Foxglove over the live view's WebSocket server (loopback): every channel of
+    the log except the ``/discarded/...`` ones (what rollbacks discarded), each with its recorded schema and
+    encoding, every message at its log time, paced: ``speed`` 1 is the run's own pace (``inf``: as fast as
+    possible). As in a live view, a client that subscribes late gets each channel's latest message (the
+    recent events). ``start()`` serves (a port in use raises naming ``port_option``, see
+    `logs.live.LiveOptions`); ``play()`` waits for a subscriber (up to ``wait_s``), then plays."""
+
+    def __init__(self, path: str | os.PathLike[str], *, host: str = "127.0.0.1", port: int = 8765,
+                 port_option: str | None = None, speed: float = 1.0):
+        from .live import FoxgloveServer, check_host  # foxglove-sdk is loaded only when a view is asked for
+
+        if isinstance(speed, bool) or not isinstance(speed, (int, float)) or not speed > 0:
+            raise DynabrainError(f"--speed is a positive factor (1 = real time, inf = as fast as possible), "
+                                 f"got {speed!r}")
+        self.path, self.host, self.speed = os.fspath(path), check_host(host), float(speed)
+        self.requested_port, self.port_option = port, port_option
+        self.index: LogIndex | None = None
+        self.sent = 0
+        self._fox = FoxgloveServer(f"dynabrain replay {os.path.basename(self.path)}")
+        self._channels: dict[int, object] = {}
+
+    @property
+    def port(self) -> int:
+        return self._fox.server.port
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+    def start(self) -> LogView:
+        index = self.index = read_index(self.path)
+        for cid, ch in sorted(index.channels.items()):
+            if ch.topic.startswith(DISCARDED + "/"):
+                continue
+            schema = index.schemas.get(ch.schema_id)
+            name, encoding, data = (schema.name, schema.encoding, schema.data) if schema else ("", "", b"")
+            self._channels[cid] = self._fox.channel(ch.topic, name, encoding, data, ch.encoding, dict(ch.metadata),
+                                                    events=ch.topic == TOPIC_EVENTS)
+        self._fox.start(self.host, self.requested_port, self.port_option)
+        return self
+
+    def play(self, stop: threading.Event | None = None, wait_s: float = 30.0) -> LogViewResult:
+        """Send every message at its time (see the class docstring); ``stop`` ends early."""
+        stop = stop or threading.Event()
+        fox = self._fox
+        if fox.subscribed.wait(wait_s):
+            fox.subscribed.clear()
+            end = time.monotonic() + 10 * SETTLE_S
+            while time.monotonic() < end and fox.subscribed.wait(SETTLE_S):  # the client's other channels
+                fox.subscribed.clear()
+        t0, first = time.perf_counter(), None
+        for rec in scan(self.path):
+            if stop.is_set():
+                break
+            if not isinstance(rec, Message):
+                continue
+            channel = self._channels.get(rec.channel_id)
+            if channel is None:
+                continue
+            first = rec.log_time if first is None else first
+            if self.speed != math.inf:
+                ahead = t0 + (rec.log_time - first) / 1e9 / self.speed - time.perf_counter()
+                if ahead > 0 and stop.wait(ahead):
+                    break
+            fox.send(channel, rec.data, rec.log_time)
+            self.sent += 1
+        return LogViewResult(self.sent, time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self._fox.close()
