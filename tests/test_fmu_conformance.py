@@ -230,7 +230,8 @@ def test_a_scenario_run_ends_where_the_fmu_asks(tmp_path):
     scenario.write_text(f"name: stop\nworld: {{step: 100ms, duration: 5s, core: null}}\n"
                         f"modules:\n  - {{name: stopper, fmu: {CONFORMANCE / 'stop'}}}\n")
     result = run_scenario(load_scenario(scenario))
-    assert result.ticks == 9 and "module 'stopper'" in result.error and "asked to end the simulation" in result.error
+    assert result.ticks == 9 and result.error is None and result.ok  # a normal end (tests/test_terminate_run.py)
+    assert result.ended_by == "stopper" and "asked to end the simulation at tick 9" in result.ended
 
 
 # -- failures without a state to go back to -----------------------------------------------------------------

@@ -7,7 +7,7 @@ back to the last good tick and re-raises them with the module's name and the tic
 
 from __future__ import annotations
 
-from ..kernel.errors import DynabrainError, ModuleError
+from ..kernel.errors import DynabrainError, EndRequestedError, ModuleError
 
 STATUS_NAMES = ("OK", "Warning", "Discard", "Error", "Fatal", "Pending")
 
@@ -38,7 +38,7 @@ class FMUDiscardError(FMUCallError):
     tick; retry with other inputs or a smaller step."""
 
 
-class FMUTerminatedError(FMUCallError):
+class FMUTerminatedError(FMUCallError, EndRequestedError):
     """The FMU asked to end the simulation (FMI 3.0 ``terminateSimulation``; FMI 2.0 a step discarded
     with ``fmi2Terminated``). The world rolls the tick back; a scenario's run ends there."""
 

@@ -156,7 +156,10 @@ class FMUModuleBase(Module):
 
     def scenario_spec(self) -> dict[str, Any]:
         """The scenario syntax that makes this module again."""
-        return {"name": self.name, "fmu": self.source, "params": self._plain_params()}
+        spec = {"name": self.name, "fmu": self.source, "params": self._plain_params()}
+        if self.start_time != self.info.start_time:  # set by the scenario (start_time:), not the FMU's own
+            spec["start_time"] = self.start_time
+        return spec
 
 
 def _span(views: list[np.ndarray], total: int) -> np.ndarray | None:

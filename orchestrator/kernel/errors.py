@@ -89,6 +89,12 @@ class NonFiniteOutputError(ModuleError):
         return type(self)(self.module, self.call, tick, self.cause, self.port)
 
 
+class EndRequestedError(ModuleError):
+    """A module asked to end the simulation (an FMU's terminate request: FMI 3.0 ``terminateSimulation``,
+    FMI 2.0 ``fmi2Terminated``). The world rolls the tick back as for any failed tick and raises this;
+    a scenario's run ends there as a normal end, not as a failure (`RunResult.ended`)."""
+
+
 class RollbackError(DynabrainError):
     """A rollback that cannot be done exactly (beyond the history, or a module that cannot roll back)."""
 

@@ -307,7 +307,8 @@ class McapLogger(Observer):
                           "from_tick": exp.start, "to_tick": exp.end}
                 self._event("expect", tick, detail, "log")
             self._event("run_end", tick, {"ticks": tick, "sim_time": result.sim_time, "wall_time": result.wall_time,
-                                          "error": result.error, "ok": result.ok}, "log")
+                                          "error": result.error, "ok": result.ok,
+                                          "ended": getattr(result, "ended", None)}, "log")
 
     def close(self) -> None:
         """Write what is waiting, the summary and the footer; rewrite the file if a rollback reached

@@ -21,7 +21,7 @@ from ..kernel.module import Module
 from ..kernel.plugins import resolve_class
 from ..kernel.units import parse_duration_ns
 
-SPEC_KEYS = ("name", "python", "fmu", "isolate", "call_timeout", "params", "targets")
+SPEC_KEYS = ("name", "python", "fmu", "isolate", "call_timeout", "start_time", "params", "targets")
 """The keys `make_module` reads (a spec may hold ``period`` and ``connect`` too)."""
 
 
@@ -56,16 +56,17 @@ def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".",
     python, fmu = get("python"), get("fmu")
     params = dict(get("params") or {})
     targets = list(get("targets") or ())
-    isolate, call_timeout = bool(get("isolate", False)), get("call_timeout")
+    isolate, call_timeout, start_time = bool(get("isolate", False)), get("call_timeout"), get("start_time")
     if not isinstance(name, str) or not name:
         raise ModuleSpecError(f"a module spec needs a name, got {name!r}", "name")
     if python is not None and fmu is not None:
         raise ModuleSpecError(f"module {name!r} has both `python:` and `fmu:`; it is one or the other")
     if fmu is not None:
-        return _make_fmu(name, fmu, base_dir, params, targets, isolate, call_timeout)
+        return _make_fmu(name, fmu, base_dir, params, targets, isolate, call_timeout, start_time)
     if python is None:
         raise ModuleSpecError(f"module {name!r} needs `python: package.module:Class` (or `fmu:`)")
-    for key, given in (("isolate", isolate), ("call_timeout", call_timeout is not None)):
+    for key, given in (("isolate", isolate), ("call_timeout", call_timeout is not None),
+                       ("start_time", start_time is not None)):
         if given:
             raise ModuleSpecError(f"{key} applies to an FMU module (`fmu:`), not to a Python class", key)
     if allow_python is not None and not any(fnmatch.fnmatchcase(python, pat) for pat in allow_python):
@@ -83,7 +84,7 @@ def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".",
 
 
 def _make_fmu(name: str, fmu: str, base_dir: str, params: dict[str, Any], targets: list[str], isolate: bool,
-              call_timeout: Any) -> Module:
+              call_timeout: Any, start_time: Any = None) -> Module:
     from ..fmu import make_fmu_module
     from ..fmu.errors import FMUError
 
@@ -95,8 +96,14 @@ def _make_fmu(name: str, fmu: str, base_dir: str, params: dict[str, Any], target
                 raise DynabrainError("a positive duration, for an FMU with `isolate: true`")
         except DynabrainError as exc:
             raise ModuleSpecError(f"call_timeout {call_timeout!r}: {exc}", "call_timeout") from None
+    start = None
+    if start_time is not None:  # the FMU's time at world time 0 (seconds)
+        try:
+            start = parse_duration_ns(start_time, allow_frequency=False) / 1e9
+        except DynabrainError as exc:
+            raise ModuleSpecError(f"start_time {start_time!r}: {exc}", "start_time") from None
     try:
         return make_fmu_module(name, fmu, base_dir=base_dir, params=params, targets=targets, isolate=isolate,
-                               call_timeout=timeout)
+                               call_timeout=timeout, start_time=start)
     except DynabrainError as exc:
         raise ModuleSpecError(str(exc), "fmu" if isinstance(exc, FMUError) else "params") from None

@@ -58,6 +58,11 @@ class WorldCfg(_Strict):
     history_budget: ByteSize | None = None
     """The most memory the history may hold when full (``2GiB``, ``25%``); default: `kernel.history.default_budget`."""
     realtime: Realtime = False
+    start_time: Duration | None = None
+    """The FMUs' time at the start (``2s``): every FMU module starts there (its own ``DefaultExperiment
+    startTime`` overridden) unless its entry gives ``start_time``. The world's clock (ticks, ``at:``,
+    ``during:``, ``duration``, the log) still counts from 0 at the start: an FMU's time is the world's
+    plus its start time."""
 
 
 class ModuleCfg(_Strict):
@@ -71,6 +76,9 @@ class ModuleCfg(_Strict):
     call_timeout: str | int | float | None = None
     """With ``isolate``: how long one FMU call may take before its process is killed (default 30 s)."""
     params: dict[str, Any] = {}
+    start_time: Duration | None = None
+    """An FMU's time at the start (``1.5s``), instead of its ``DefaultExperiment startTime`` and of
+    ``world.start_time``."""
     period: PositiveDuration | None = None
     targets: list[str] = []
     connect: list[list[Any]] = []
@@ -417,9 +425,12 @@ class _Builder:
         parameter whose value is wrong (type, unit, finiteness, `limits.MAX_MAGNITUDE`) is reported and
         left out, so that the module is still made and what uses it is still checked."""
         params = self._good_params(cfg, path)
+        update: dict[str, Any] = {} if params is None else {"params": params}
+        start = self.sc.model.world.start_time
+        if start is not None and cfg.fmu is not None and cfg.start_time is None:
+            update["start_time"] = start  # the world's start time, for an FMU that gives none of its own
         try:
-            module = make_module(cfg if params is None else cfg.model_copy(update={"params": params}),
-                                 base_dir=self.sc.dir)
+            module = make_module(cfg.model_copy(update=update) if update else cfg, base_dir=self.sc.dir)
         except ModuleSpecError as exc:
             self.report(path if exc.field is None else (*path, exc.field), str(exc))
             return None

@@ -1,4 +1,14 @@
-"""Running a scenario to its end: ticks, expectations at their times, a result to print."""
+"""Running a scenario to its end: ticks, expectations at their times, a result to print.
+
+A module may ask to end the simulation (an FMU's terminate request raises `EndRequestedError`): the
+run ends cleanly at the tick where it asked (that tick's step is rolled back, as the world does for
+any failed tick, so the world stands at the start of it), and that is a normal end, not an error:
+`RunResult.ended` says which module asked, at which tick and time, and why. The expectations are
+checked over the ticks run: one due by then is checked as usual (also at the last tick); a
+``during`` window cut short passes if it held over the ticks it got, and says so; one due after the
+end is not reached and fails, saying where the run ended. So a run that ends on a terminate request
+is ``ok`` when every expectation it reached holds and none was left unreached.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +16,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from ..kernel.errors import EndRequestedError
 from ..kernel.world import World
 from .expect import Expectation, namespace_for
 from .model import Scenario
@@ -20,6 +31,11 @@ class RunResult:
     dt_ns: int
     expectations: list[Expectation] = field(default_factory=list)
     error: str | None = None
+    ended: str | None = None
+    """Why the run ended before its duration when a module asked to end it (a terminate request): the
+    module, the tick and time, and its reason; None when the run went its whole duration or failed."""
+    ended_by: str | None = None
+    """The module that asked to end the run, or None."""
 
     @property
     def realtime_factor(self) -> float:
@@ -43,7 +59,7 @@ def run_scenario(scenario: Scenario, world: World | None = None, *,
     factor = scenario.model.world.realtime if realtime is None else realtime
     factor = 1.0 if factor is True else (float(factor) if factor else None)
     wall0 = time.perf_counter()
-    error = None
+    error = ended = ended_by = None
     try:
         stop = world.tick_count
         while True:
@@ -58,16 +74,37 @@ def run_scenario(scenario: Scenario, world: World | None = None, *,
             if tick >= total:
                 break
             stop = _next_stop(tick, total, chunk, expectations)
+    except EndRequestedError as exc:  # a normal end: the tick that asked has been rolled back
+        ended_by = exc.module
+        ended = (f"module {exc.module!r} asked to end the simulation at tick {world.tick_count} "
+                 f"(t={world.time:.6g} s): {exc.cause}")
     except Exception as exc:  # a failed tick has been rolled back; report it with the results
         error = str(exc)
     wall = time.perf_counter() - wall0
+    if ended is not None:
+        _at_the_end(world, reader, expectations, ended_by)
     for exp in expectations:
         if exp.passed is None:
             exp.passed, exp.detail = False, exp.detail or "not reached"
-    result = RunResult(scenario.model.name, world.tick_count, world.time, wall, world.dt_ns, expectations, error)
+    result = RunResult(scenario.model.name, world.tick_count, world.time, wall, world.dt_ns, expectations, error,
+                       ended, ended_by)
     if own:
         world.close()
     return result
+
+
+def _at_the_end(world: World, reader: object, expectations: list[Expectation], module: str | None) -> None:
+    """After a terminate request: check what is due at the tick the run ended at, pass a ``during``
+    window that held over the ticks it got, and say where the run ended for one not reached."""
+    tick = world.tick_count
+    who = f"module {module!r} asked to end the simulation"
+    for exp in expectations:
+        if exp.passed is None and exp.start <= tick <= exp.end:
+            exp.check(world, reader)
+        if exp.passed is None and exp.start <= tick:
+            exp.passed, exp.detail = True, f"held up to tick {tick}, where {who}"
+        elif exp.passed is None:
+            exp.passed, exp.detail = False, f"not reached: the run ended at tick {tick} (t={world.time:.6g} s): {who}"
 
 
 def _next_stop(tick: int, total: int, chunk: int, expectations: list[Expectation]) -> int:
