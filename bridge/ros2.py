@@ -15,7 +15,8 @@
 The format is rmw_zenoh_cpp 0.2.10's (ROS 2 Jazzy: ``liveliness_utils.cpp``, ``attachment_helpers.cpp``,
 ``type_support_common.cpp``, ``qos.cpp`` of its ``release/jazzy`` branch), unchanged up to 0.12.0 (Rolling),
 which only appends an optional field for buffer types. Messages are encoded and decoded by ``rosbags``
-(its Jazzy type store, which also gives each type's RIHS01 hash).
+(its Jazzy type store, which also gives each type's RIHS01 hash), through `logs.ros2msgs`, which the logs share
+(``run --log FILE --ros2-schemas``): the messages, and which joints and bodies a world's signals give.
 
 The node ``/dynabrain_<world>`` publishes, every ``1 / rate_hz`` of simulated time as the world ticks:
 
@@ -54,10 +55,10 @@ from typing import Any
 import numpy as np
 import zenoh
 import zenoh.ext
-from rosbags.typesys import Stores, get_typestore
 
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.observers import WorldView
+from dynabrain.orchestrator.logs.ros2msgs import CLOCK, JOINT_STATE, ROS_DISTRO, TF, Codec, Ros2Signals, ros2_signals
 
 from .calls import Rig, WorldService
 from .streams import EventSink
@@ -66,14 +67,12 @@ _log = logging.getLogger("dynabrain.bridge.ros2")
 
 RMW_ZENOH_VERSION = "0.2.10"
 """The rmw_zenoh_cpp release whose key expressions, tokens and attachment this module writes (ROS 2 Jazzy)."""
-ROS_DISTRO = "jazzy"
 ADMIN_SPACE = "@ros2_lv"
 RMW_ZENOH_DEFAULT_DEPTH = 42
 """rmw_zenoh's default history depth: a QoS equal to its default is written as an empty field."""
 BRAIN_ID = "ros2"
 """The id ROS 2 commands go under in the bridge (holds, events)."""
 MAX_COMMAND_BYTES = 1 << 20
-CLOCK, TF, JOINT_STATE = "rosgraph_msgs/msg/Clock", "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/JointState"
 MULTI_ARRAY, TRAJECTORY = "std_msgs/msg/Float64MultiArray", "trajectory_msgs/msg/JointTrajectory"
 _NOT_NAME = re.compile(r"[^A-Za-z0-9_]")
 
@@ -145,29 +144,6 @@ def read_attachment(data: zenoh.ZBytes) -> tuple[int, int, bytes]:
     return int(seq), int(source_ns), bytes(gid)
 
 
-class Codec:
-    """ROS 2 messages in CDR, by ``rosbags`` (its Jazzy type store): classes, encoding, type hashes."""
-
-    def __init__(self) -> None:
-        self.store = get_typestore(Stores.ROS2_JAZZY)
-        self.types = self.store.types
-        self._hashes: dict[str, str] = {}
-
-    def hash(self, msgtype: str) -> str:
-        if msgtype not in self._hashes:
-            self._hashes[msgtype] = self.store.hash_rihs01(msgtype)
-        return self._hashes[msgtype]
-
-    def encode(self, msg: Any) -> bytes:
-        return bytes(self.store.serialize_cdr(msg, msg.__msgtype__))
-
-    def decode(self, data: bytes, msgtype: str) -> Any:
-        return self.store.deserialize_cdr(data, msgtype)
-
-    def stamp(self, t_ns: int) -> Any:
-        return self.types["builtin_interfaces/msg/Time"](sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
-
-
 # -- the graph's entities ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Endpoint:
@@ -202,37 +178,25 @@ class _Publisher:
 class _Layout:
     """The joints and bodies published, and the bridge's view of their signals."""
 
-    joints: tuple[str, ...]
-    bodies: tuple[str, ...]
-    effort: bool
+    signals: Ros2Signals
     view: int | None
     bus: object
 
     @property
-    def sizes(self) -> tuple[int, ...]:
-        n, b = len(self.joints), len(self.bodies)
-        return (n, n, n if self.effort else 0, 3 * b, 4 * b)
+    def joints(self) -> tuple[str, ...]:
+        return self.signals.joints
+
+    @property
+    def bodies(self) -> tuple[str, ...]:
+        return self.signals.bodies
 
 
 def _layout(service: WorldService, view: WorldView) -> _Layout:
     core = service.world.core
-    slots = view.signal_slots()
-    joints: list[str] = []
-    bodies: list[str] = []
-    if core is not None:
-        c = core.name
-        joints = [j for j in core.joints() if slots.get(f"{c}.{j}.q", (0, None))[1] == ()
-                  and f"{c}.{j}.qd" in slots]
-        bodies = [b for b in core.bodies() if slots.get(f"{c}.{b}.pos", (0, None))[1] == (3,)
-                  and slots.get(f"{c}.{b}.quat", (0, None))[1] == (4,)]
-        effort = bool(joints) and all(slots.get(f"{c}.{j}.force", (0, None))[1] == () for j in joints)
-        names = ([f"{c}.{j}.q" for j in joints] + [f"{c}.{j}.qd" for j in joints]
-                 + ([f"{c}.{j}.force" for j in joints] if effort else [])
-                 + [f"{c}.{b}.pos" for b in bodies] + [f"{c}.{b}.quat" for b in bodies])
-    else:
-        effort, names = False, []
-    vid = service.internal_view(names) if names else None
-    return _Layout(tuple(joints), tuple(bodies), effort, vid, view.bus().base)
+    signals = ros2_signals(core.name if core is not None else None, core.joints() if core is not None else (),
+                           core.bodies() if core is not None else (), view.signal_slots())
+    vid = service.internal_view(list(signals.names)) if signals.names else None
+    return _Layout(signals, vid, view.bus().base)
 
 
 @dataclass
@@ -371,33 +335,16 @@ class Ros2Bridge:
                 with contextlib.suppress(DynabrainError):
                     self._service.do_drop_view(_ViewRef(lay.view))  # the bridge's own view (a negative id)
             lay = self._layout = _layout(self._service, view)
-        t_ns = self._service.world.time_ns
-        stamp = self.codec.stamp(t_ns)
-        self._clock.put(self.codec.encode(self.codec.types[CLOCK](clock=stamp)))
+        codec = self.codec
+        stamp = codec.stamp(self._service.world.time_ns)
+        self._clock.put(codec.encode(codec.clock(stamp)))
         if lay.view is not None:
-            values = self._service.values(lay.view)
-            q, qd, effort, pos, quat = np.split(values, np.cumsum(lay.sizes)[:-1])
+            q, qd, effort, pos, quat = lay.signals.split(self._service.values(lay.view))
             if lay.joints:
-                self._joints.put(self.codec.encode(self._joint_state(stamp, lay, q, qd, effort)))
+                self._joints.put(codec.encode(codec.joint_state(stamp, lay.joints, q, qd, effort)))
             if lay.bodies:
-                self._tf.put(self.codec.encode(self._tf_message(stamp, lay, pos.reshape(-1, 3),
-                                                                quat.reshape(-1, 4))))
+                self._tf.put(codec.encode(codec.tf_message(stamp, lay.bodies, pos, quat)))
         self.counts.published += 1
-
-    def _joint_state(self, stamp: Any, lay: _Layout, q: np.ndarray, qd: np.ndarray, effort: np.ndarray) -> Any:
-        t = self.codec.types
-        return t[JOINT_STATE](header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=""), name=list(lay.joints),
-                              position=q.copy(), velocity=qd.copy(), effort=effort.copy())
-
-    def _tf_message(self, stamp: Any, lay: _Layout, pos: np.ndarray, quat_wxyz: np.ndarray) -> Any:
-        t = self.codec.types
-        header = t["std_msgs/msg/Header"](stamp=stamp, frame_id="world")
-        vec, rot = t["geometry_msgs/msg/Vector3"], t["geometry_msgs/msg/Quaternion"]
-        transform, stamped = t["geometry_msgs/msg/Transform"], t["geometry_msgs/msg/TransformStamped"]
-        return t[TF](transforms=[
-            stamped(header=header, child_frame_id=body, transform=transform(
-                translation=vec(x=p[0], y=p[1], z=p[2]), rotation=rot(x=w[1], y=w[2], z=w[3], w=w[0])))
-            for body, p, w in zip(lay.bodies, pos.tolist(), quat_wxyz.tolist(), strict=True)])
 
     # -- commands (Zenoh's threads) -------------------------------------------------------------------------
     def _decode(self, data: bytes, msgtype: str, topic: str) -> Any:
