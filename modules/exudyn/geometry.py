@@ -14,7 +14,12 @@ Contact shapes (Exudyn's general contact knows spheres, and triangles that spher
 - capsule: a triangle mesh and spheres of its radius along its axis, about ``CAPSULE_SPACING``
   radii apart (spheres of one body must not overlap: that would be a contact with itself; between
   them a thing smaller than the radius could poke into the capsule's side);
-- plane: two static triangles.
+- plane: two static triangles;
+- mesh: the convex hull of its vertices (as MuJoCo collides it): the hull's triangles, and a sphere in
+  each hull corner, tangent to the faces there, of ``CORNER_FRACTION`` of the hull's smallest distance
+  from its centre to a face (and less than half its shortest edge: spheres of one body must not overlap);
+  ``support`` is the number of corners of its largest flat side (more where its corners are lighter
+  to push than a cube's: `_light_corners`).
 
 ``support`` is how many of a shape's spheres carry it at rest on a flat floor; the core divides a
 body's contact stiffness among them.
@@ -26,6 +31,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from dynabrain.orchestrator.kernel.meshes import Mesh, convex_hull
+from dynabrain.orchestrator.kernel.meshes import mass_properties as mesh_mass
 
 DENSITY = 1000.0
 """kg/m^3 of a body without a mass (MuJoCo's default)."""
@@ -41,7 +49,7 @@ CAPSULE_SPACING = 3.0
 PLANE_HALF = 100.0
 """Half size (m) of the triangles of an infinite plane."""
 
-SHAPES_WITH_CONTACT = ("plane", "box", "sphere", "capsule", "cylinder")
+SHAPES_WITH_CONTACT = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
 Pose = tuple[np.ndarray, np.ndarray]
 IDENTITY: Pose = (np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
 
@@ -210,6 +218,17 @@ def mass_properties(shape: str, size: tuple[float, ...], mass: float | None) -> 
     return m, np.diag(diag)
 
 
+def body_mass(b) -> tuple[float, np.ndarray, np.ndarray]:
+    """(mass, inertia about the centre of mass, centre of mass) of a body in its frame: a primitive's
+    centre is its origin; a mesh's is its convex hull's (uniform density)."""
+    if b.shape == "mesh":
+        volume, centre, inertia = mesh_mass(*convex_hull(b.mesh, b.scale))
+        m = float(b.mass) if b.mass is not None else DENSITY * volume
+        return m, inertia * (m / volume), centre
+    m, inertia = mass_properties(b.shape, b.size, b.mass)
+    return m, inertia, np.zeros(3)
+
+
 def _capsule_inertia(m: float, r: float, h: float) -> np.ndarray:
     """A cylinder of length h and two hemispheres (their centres of mass 3r/8 from the flat faces)."""
     cyl, sph = math.pi * r * r * h, 4.0 / 3.0 * math.pi * r ** 3
@@ -261,6 +280,55 @@ def contact_shape(shape: str, size: tuple[float, ...]) -> ContactShape:
         pts = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
         return ContactShape(np.zeros((0, 3)), np.zeros(0), pts, np.array([[0, 1, 2], [0, 2, 3]]), 0, False)
     raise ValueError(f"no contact shape for {shape!r}")
+
+
+def body_contact_shape(b) -> ContactShape:
+    """The contact shape of a body (a primitive's by its size, a mesh's by its hull)."""
+    return mesh_contact_shape(b.mesh, b.scale) if b.shape == "mesh" else contact_shape(b.shape, b.size)
+
+
+def mesh_contact_shape(mesh: Mesh, scale: tuple[float, float, float]) -> ContactShape:
+    points, tris = convex_hull(mesh, scale)
+    a, b, c = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
+    normal = np.cross(b - a, c - a)
+    area = np.linalg.norm(normal, axis=1)
+    unit = normal / area[:, None]
+    centre = points.mean(axis=0)
+    inradius = float(np.min(np.einsum("ij,ij->i", unit, a - centre)))
+    edges = np.concatenate([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
+                            np.linalg.norm(a - c, axis=1)])
+    r = min(CORNER_FRACTION * inradius, 0.45 * float(edges.min()))
+    centers = np.empty_like(points)
+    for i in range(len(points)):  # tangent to the faces at the corner (least squares where more than 3 meet)
+        planes = np.unique(np.round(unit[(tris == i).any(axis=1)], 9), axis=0)
+        d = np.linalg.lstsq(planes, -np.ones(len(planes)), rcond=None)[0]
+        centers[i] = points[i] + r * d
+    # the support: the corners of the largest flat side (coplanar triangles summed)
+    key = np.round(np.column_stack([unit, np.einsum("ij,ij->i", unit, a)]) / max(r, 1e-12), 3)
+    _, which = np.unique(key, axis=0, return_inverse=True)
+    largest = int(np.argmax(np.bincount(which.ravel(), weights=area)))
+    support = len(np.unique(tris[which.ravel() == largest])) * _light_corners(points, tris, centers)
+    return ContactShape(centers, np.full(len(points), r), points, tris, support, False)
+
+
+BOX_CORNER_SHARE = 1.0 / 5.5
+"""The least share of a cube's mass its corner moves (its rotation included: ``m_eff / m``); the
+contact damping is stable for it (see `exudyn.contact`)."""
+
+
+def _light_corners(points: np.ndarray, tris: np.ndarray, centers: np.ndarray) -> float:
+    """How much lighter to push than a cube's the lightest corner of a mesh is (at least 1): a mesh
+    with long levers about its centre of mass (a tetrahedron's corners) gets its contact stiffness
+    and damping shared among as many more spheres, or its damping would make the explicit step
+    unstable."""
+    volume, com, inertia = mesh_mass(points, tris)
+    inv = np.linalg.inv(inertia / volume)
+    worst = 0.0
+    for arm in centers - com:
+        cross = np.array([[0.0, -arm[2], arm[1]], [arm[2], 0.0, -arm[0]], [-arm[1], arm[0], 0.0]])
+        worst = max(worst, float(np.linalg.eigvalsh(cross.T @ inv @ cross).max()))
+    share = 1.0 / (1.0 + worst)
+    return max(1.0, BOX_CORNER_SHARE / share) ** 3  # (measured: a tetrahedron dropped 20 cm settles)
 
 
 def _box(half: np.ndarray) -> ContactShape:

@@ -173,9 +173,10 @@ class System(Outputs, Inputs):
         parts = []
         for body, x in members.items():
             b = self.top.spec[body]
-            m, inertia = geo.mass_properties(b.shape, b.size, b.mass)
+            m, inertia, centre = geo.body_mass(b)
             if m > 0:
-                parts.append((m, inertia, x[0], geo.quat_to_mat(x[1])))
+                rot = geo.quat_to_mat(x[1])
+                parts.append((m, inertia, x[0] + rot @ centre, rot))
         return geo.combine(parts)
 
     def _free(self, c: Carrier, start: Start) -> None:
@@ -253,7 +254,7 @@ class System(Outputs, Inputs):
         b = self.top.spec[body]
         if b.shape not in geo.SHAPES_WITH_CONTACT:
             return
-        shape = geo.contact_shape(b.shape, b.size)
+        shape = geo.body_contact_shape(b)
         rot = geo.quat_to_mat(x[1])
         centers = shape.centers @ rot.T + x[0]
         item = xk.BodyItems(body, mass, shape.support, shape.round, self.material(body), static=kind == "world")

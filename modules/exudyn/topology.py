@@ -34,7 +34,8 @@ from dynabrain.orchestrator.kernel.suggest import did_you_mean
 from . import geometry as geo
 
 ENGINE = "exudyn"
-_SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,), "cable": (1,)}
+_SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,), "cable": (1,),
+             "mesh": (0,)}
 
 
 def fail(core: str, message: str) -> DynabrainError:
@@ -138,6 +139,8 @@ def _check_body(core: str, b: BodySpec, spec: dict[str, BodySpec]) -> None:
                    f"{', '.join(known)})" + did_you_mean(b.shape, known))
     s = tuple(float(x) for x in b.size)
     need = _SIZE_LEN[b.shape]
+    if b.shape == "mesh" and b.mesh is None:
+        raise fail(core, f"{where(b)}a mesh body needs its mesh")
     if len(s) not in need or any(x <= 0 for x in s):
         raise fail(core, f"{where(b)}a {b.shape} needs {' or '.join(map(str, need))} positive sizes, got {b.size}")
     if b.mass is not None and not b.mass > 0:

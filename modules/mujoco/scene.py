@@ -47,10 +47,12 @@ _ZETAS = np.array([0.0, 0.02, 0.05, 0.08, 0.12, 0.17, 0.23, 0.3, 0.4, 0.5, 0.62,
                    1.25, 1.5, 2.0, 3.0, 4.0])
 _GEOMS = {"plane": mujoco.mjtGeom.mjGEOM_PLANE, "box": mujoco.mjtGeom.mjGEOM_BOX,
           "sphere": mujoco.mjtGeom.mjGEOM_SPHERE, "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE,
-          "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER}
+          "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER, "mesh": mujoco.mjtGeom.mjGEOM_MESH}
 _GEOM_NAMES = {int(v): k for k, v in _GEOMS.items()} | {
-    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid", int(mujoco.mjtGeom.mjGEOM_MESH): "mesh",
+    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
     int(mujoco.mjtGeom.mjGEOM_HFIELD): "hfield", int(mujoco.mjtGeom.mjGEOM_SDF): "sdf"}
+MESH_PREFIX = "__dynabrain_mesh_"
+"""Name prefix of the mesh asset of a ``mesh`` body (its geom is named as the body)."""
 _JOINTS = {"hinge": mujoco.mjtJoint.mjJNT_HINGE, "slide": mujoco.mjtJoint.mjJNT_SLIDE}
 _OPTIONS = {
     "integrator": ("integrator", mujoco.mjtIntegrator, "mjINT_"),
@@ -184,7 +186,7 @@ class SpecSource:
             for b in scene_key[0]:  # bodies added at run time (only those: model bodies are not removed)
                 if b.name in {x.name for x in spec.bodies}:
                     raise fail(self.core, f"{_where(b)}a body of that name exists already")
-                _add_body(self.core, spec.worldbody, b, b.name in bake, bake.get(b.name),
+                _add_body(self.core, spec, spec.worldbody, b, b.name in bake, bake.get(b.name),
                           degree=bool(spec.compiler.degree))
             removed = set()
             for name, rel in bake.items():
@@ -244,7 +246,7 @@ def _spec_from_bodies(core: str, bodies: Sequence[BodySpec], bake: dict) -> mujo
         if b.parent in chain:
             raise fail(core, f"{_where(b)}parent cycle: {' -> '.join((*chain, b.name))}")
         parent = spec.worldbody if b.parent is None else make(by_name[b.parent], (*chain, b.name))
-        made[b.name] = _add_body(core, parent, b, b.name in bake, bake.get(b.name))
+        made[b.name] = _add_body(core, spec, parent, b, b.name in bake, bake.get(b.name))
         return made[b.name]
 
     for b in bodies:
@@ -256,8 +258,8 @@ def _where(b: BodySpec) -> str:
     return f"body {b.name!r}" + (f" (line {b.line})" if b.line else "") + ": "
 
 
-def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel: tuple | None, *,
-              degree: bool = False) -> mujoco.MjsBody:
+def _add_body(core: str, spec: mujoco.MjSpec, parent: mujoco.MjsBody, b: BodySpec, frozen: bool,
+              rel: tuple | None, *, degree: bool = False) -> mujoco.MjsBody:
     if b.shape in FLEX_SHAPES:
         raise fail(core, f"{_where(b)}a flexible body (shape {b.shape!r}) is not supported by the mujoco core; "
                    "flexible bodies need core: exudyn")
@@ -269,6 +271,8 @@ def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel:
     body.fuse = 0  # only frozen bodies are fused (see build_structure)
     geom = body.add_geom(name=b.name, type=_GEOMS[b.shape], size=_geom_size(core, b),
                          rgba=list(b.color))
+    if b.shape == "mesh":
+        geom.meshname = _add_mesh(spec, b)
     if b.mass is not None:
         if b.mass <= 0:
             raise fail(core, f"{_where(b)}mass must be positive, got {b.mass}")
@@ -277,9 +281,23 @@ def _add_body(core: str, parent: mujoco.MjsBody, b: BodySpec, frozen: bool, rel:
     return body
 
 
+def _add_mesh(spec: mujoco.MjSpec, b: BodySpec) -> str:
+    """The mesh asset of a ``mesh`` body: its vertices and triangles (none: MuJoCo makes the hull), its
+    scale, and the hull's mass properties (MuJoCo collides a mesh as its convex hull; the Exudyn core
+    takes the same hull for both)."""
+    name = MESH_PREFIX + b.name
+    mesh = spec.add_mesh(name=name, uservert=[float(x) for v in b.mesh.vertices for x in v],
+                         scale=list(b.scale), inertia=mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX)
+    if b.mesh.faces:
+        mesh.userface = [int(i) for f in b.mesh.faces for i in f]
+    return name
+
+
 def _geom_size(core: str, b: BodySpec) -> list[float]:
     s = [float(x) for x in b.size]
-    need = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,)}[b.shape]
+    need = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,), "mesh": (0,)}[b.shape]
+    if b.shape == "mesh":
+        return [0.0, 0.0, 0.0]
     if len(s) not in need or any(x < 0 for x in s) or (b.shape != "plane" and not all(s)):
         raise fail(core, f"{_where(b)}a {b.shape} needs {' or '.join(map(str, need))} positive sizes, "
                    f"got {tuple(b.size)}")

@@ -129,7 +129,63 @@ def normalise(spec: BodySpec) -> dict[str, Any]:
                             f"got {joint!r}")
     if spec.parent is not None and not isinstance(spec.parent, str):
         raise BodySpecError(name, "parent", f"parent is a body's name, got {spec.parent!r}")
+    out.update(_mesh_fields(spec))
     return out
+
+
+def _mesh_fields(spec: BodySpec) -> dict[str, Any]:
+    """``mesh`` and ``scale`` made (a mesh body), or refused (any other shape)."""
+    from .meshes import Mesh, parse_mesh
+
+    name = spec.name
+    if spec.shape != "mesh":
+        for key in ("mesh", "scale"):
+            if getattr(spec, key) is not None:
+                raise BodySpecError(name, key, f"only a mesh body takes a {key} (this is a {spec.shape})")
+        return {}
+    out: dict[str, Any] = {}
+    if spec.mesh is None:
+        raise BodySpecError(name, "mesh", "a mesh body needs mesh: a file (.obj, .stl), {vertices, faces} or a "
+                            "list of vertices")
+    if not isinstance(spec.mesh, Mesh):
+        try:
+            out["mesh"] = parse_mesh(spec.mesh)
+        except (UnitError, TypeError, ValueError, OverflowError) as exc:
+            raise BodySpecError(name, "mesh", str(exc)) from None
+    if spec.size:
+        raise BodySpecError(name, "size", f"a mesh takes its size from its vertices and scale, got size {spec.size!r}")
+    scale = spec.scale
+    if not (isinstance(scale, tuple) and len(scale) == 3 and all(type(x) is float and x > 0 for x in scale)):
+        try:
+            value = (1.0, 1.0, 1.0) if scale is None else (
+                (_quantity(scale, None),) * 3 if isinstance(scale, (int, float, str)) else quantities(scale, 3, None))
+        except (UnitError, TypeError, ValueError, OverflowError) as exc:
+            raise BodySpecError(name, "scale", f"{exc} (a scale is a number or three)") from None
+        if not all(x > 0 for x in value):
+            raise BodySpecError(name, "scale", f"scales must be positive, got {scale!r}")
+        out["scale"] = value
+    return out
+
+
+def body_from_detail(detail: dict[str, Any]) -> BodySpec:
+    """The `BodySpec` of an event's detail (`World` records a body it adds as plain values: a log's
+    ``body_added``): plain values only, so nothing recorded runs code."""
+    from .core import BodySpec, CableSpec, JointSpec
+
+    if not isinstance(detail, dict):
+        raise BodySpecError(None, "spec", f"a recorded body is a mapping of its fields, got {type(detail).__name__}")
+    fields = dict(detail)
+    for key, cls in (("joint", JointSpec), ("cable", CableSpec)):
+        value = fields.get(key)
+        if isinstance(value, dict):
+            try:
+                fields[key] = cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in value.items()})
+            except TypeError as exc:
+                raise BodySpecError(fields.get("name"), key, str(exc)) from None
+    try:
+        return BodySpec(**fields)
+    except TypeError as exc:
+        raise BodySpecError(fields.get("name"), "spec", str(exc)) from None
 
 
 def joint_kind(kind: Any) -> str:

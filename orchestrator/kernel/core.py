@@ -64,7 +64,7 @@ from .module import Capabilities, Module, Port
 from .portable import state_type
 from .suggest import did_you_mean
 
-SHAPES = ("plane", "box", "sphere", "capsule", "cylinder")
+SHAPES = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
 FLEX_SHAPES = ("cable",)
 """Shapes of flexible bodies (not every core has them; see `CableSpec`)."""
 JOINT_KINDS = ("free", "hinge", "slide", "fixed")
@@ -164,7 +164,11 @@ class BodySpec:
 
     ``size`` by shape: box: full edge lengths (x, y, z); sphere: (radius,); capsule and cylinder:
     (radius, length along the body z axis); plane: (half-x, half-y) or () for infinite; cable:
-    (radius,), with the rest in ``cable``.
+    (radius,), with the rest in ``cable``; mesh: () (its ``mesh`` and ``scale`` say).
+    A ``mesh`` body's ``mesh`` is a file (``.obj``, ``.stl``; read when the spec is made), ``{vertices,
+    faces}`` or a list of vertices, in the body frame, times ``scale`` (a number or three); it becomes a
+    `kernel.meshes.Mesh`. Both cores simulate it as its convex hull (contacts, mass and inertia; MuJoCo
+    collides a mesh as its hull); its body frame is the mesh's own (not its centre of mass).
     ``pos`` is in the parent's frame (the world's when ``parent`` is None); ``quat`` is w-x-y-z.
     A plane is always static; a top-level body without ``joint`` is free.
 
@@ -177,7 +181,7 @@ class BodySpec:
 
     name: str
     shape: str
-    size: tuple[float, ...]
+    size: tuple[float, ...] = ()
     pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
     quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     mass: float | None = None
@@ -191,6 +195,10 @@ class BodySpec:
     """The rope of a ``cable`` body (shape in `FLEX_SHAPES`); None for rigid shapes."""
     restitution: float | None = None
     """The body's own coefficient of restitution (0..1); None: the core's ``restitution``."""
+    mesh: Any = None
+    """The triangle mesh of a ``mesh`` body (a `kernel.meshes.Mesh` once made); None for other shapes."""
+    scale: tuple[float, float, float] | None = None
+    """The scale of a ``mesh`` body's vertices per axis ((1, 1, 1) once made); None for other shapes."""
 
     def __post_init__(self) -> None:
         from .bodies import normalise  # (bodies.py uses these classes)

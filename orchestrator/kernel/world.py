@@ -565,7 +565,9 @@ class World:
         """Add a body to the running world (also from another thread while `start` runs); returns its
         name. ``spec`` is a `BodySpec`, or its fields are given by name: ``world.add_body(name="box1",
         shape="box", size=["100mm"] * 3, mass="50g", pos=[0, 0, "1m"], color="blue", friction=0.4)``,
-        with the units and colour names of a scenario file. It appears at rest where ``pos`` and
+        with the units and colour names of a scenario file; a ``mesh`` body takes ``mesh`` (an ``.obj`` or
+        ``.stl`` file, read now, or ``{vertices, faces}``) and ``scale``, and is simulated as its convex
+        hull (see `BodySpec`). It appears at rest where ``pos`` and
         ``quat`` put it, simulated (`make` and `no_collision` take it by name), with ports of its own
         (``core.<name>.pos`` ..., and the inputs of a free body). Part of history: a backtick to a tick
         before it takes it out again, bit for bit. A bad value, or a name in use, raises naming the
@@ -578,7 +580,7 @@ class World:
                 raise BodySpecError(exc.body, exc.field, exc.detail, call="add_body") from None
             except TypeError as exc:
                 raise DynabrainError(f"add_body(): {exc} (a BodySpec, or its fields by name: name, shape, size, "
-                                     "pos, quat, mass, color, joint, friction, restitution)") from None
+                                     "pos, quat, mass, color, joint, friction, restitution, mesh, scale)") from None
             self._edit_bodies(core, lambda: core.add_body(spec))
             self._edited("body_added", body=spec.name, spec=_body_detail(spec))
             return spec.name
@@ -1225,7 +1227,7 @@ def _body_detail(spec: BodySpec) -> dict[str, Any]:
         if f.name == "line" or value is None:
             continue
         out[f.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else (
-            list(value) if isinstance(value, tuple) else value)
+            value.plain() if f.name == "mesh" else list(value) if isinstance(value, tuple) else value)
     return out
 
 

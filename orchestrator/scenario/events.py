@@ -351,7 +351,7 @@ def _add_body(value: dict[str, Any], world: World, builder: _Builder, path: Path
     if world.core is None:
         builder.report(path, "add_body needs a physics core")
         return lambda w: None
-    spec, problems = parse_body(value, builder.src, path)
+    spec, problems = parse_body(value, builder.src, path, builder.sc.dir)
     builder.problems += problems
     if spec is None:
         return lambda w: None

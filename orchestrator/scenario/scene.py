@@ -28,15 +28,17 @@ import numpy as np
 from ..kernel.bodies import parse_color
 from ..kernel.core import COLORS, FLEX_SHAPES, JOINT_KINDS, SHAPES, BodySpec, CableSpec, JointSpec, SceneSpec
 from ..kernel.errors import DynabrainError, Problem, UnitError
+from ..kernel.meshes import parse_mesh
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import parse_quantity
 from ..kernel.yamlsrc import Path, YamlSource
 from . import limits
 from .limits import bounded, short
 
-_BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction", "restitution")
+_BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction", "restitution",
+              "mesh", "scale")
 _JOINT_KEYS = ("name", "axis", "anchor", "range", "damping")
-_SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,)}
+_SIZE_LEN = {"plane": (0, 2), "box": (3,), "sphere": (1,), "capsule": (2,), "cylinder": (2,), "mesh": (0,)}
 _CABLE_KEYS = ("name", "from", "to", "radius", "mass", "segments", "stiffness", "bending", "damping", "attach",
                "color", "friction")
 _ALL_SHAPES = (*SHAPES, *FLEX_SHAPES)
@@ -69,8 +71,10 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
                                         + f"; shapes: {', '.join(_ALL_SHAPES)}"))
             continue
         try:
-            parse = _cable if shape in FLEX_SHAPES else _body
-            body = parse(shape, fields or {}, src, (*path, shape), problems)
+            if shape in FLEX_SHAPES:
+                body = _cable(shape, fields or {}, src, (*path, shape), problems)
+            else:
+                body = _body(shape, fields or {}, src, (*path, shape), problems, base_dir)
         except (DynabrainError, ValueError, TypeError, ArithmeticError) as exc:
             problems.append(src.problem((*path, shape), str(exc)))
             continue
@@ -154,9 +158,19 @@ def _field_reader(shape: str, f: dict[str, Any], keys: Sequence[str], src: YamlS
     return field
 
 
-def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem]) -> BodySpec | None:
+def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: list[Problem],
+          base_dir: str | None = None) -> BodySpec | None:
+    """A rigid body; a mesh's file (``mesh: part.obj``) is relative to ``base_dir`` and read now."""
     before = len(problems)
     field = _field_reader(shape, f, _BODY_KEYS, src, path, problems, required=False)
+    for key in ("mesh", "scale"):
+        if key in f and shape != "mesh":
+            problems.append(src.problem((*path, key), f"only a mesh takes {key!r} (this is a {shape})"))
+    if shape == "mesh" and "mesh" not in f:
+        problems.append(src.problem(path, "a mesh needs 'mesh': a file (.obj, .stl), {vertices, faces} or a "
+                                    "list of vertices"))
+    mesh = field("mesh", lambda v: parse_mesh(v, base_dir)) if shape == "mesh" else None
+    scale = field("scale", lambda v: _scale(v)) if shape == "mesh" else None
 
     name = f.get("name", "floor" if shape == "plane" else None)
     if not _good_name(name):
@@ -177,20 +191,27 @@ def _body(shape: str, f: dict[str, Any], src: YamlSource, path: Path, problems: 
     joint = field("joint", _joint)
     if shape == "plane" and joint not in (None,) and joint.kind != "fixed":
         problems.append(src.problem((*path, "joint"), "a plane is static; it takes no joint"))
-    body = BodySpec(
-        name=name, shape=shape, size=tuple(size),
-        pos=field("pos", lambda v: _vector(v, 3, "length"), (0.0, 0.0, 0.0)),
-        quat=quat, mass=field("mass", _mass),
-        color=field("color", _color, COLORS["grey"]), joint=joint, parent=parent,
-        friction=field("friction", _friction), line=src.line(path),
-        restitution=field("restitution", _restitution),
-    )
-    return body if len(problems) == before else None
+    fields = dict(pos=field("pos", lambda v: _vector(v, 3, "length"), (0.0, 0.0, 0.0)), quat=quat,
+                  mass=field("mass", _mass), color=field("color", _color, COLORS["grey"]), joint=joint,
+                  parent=parent, friction=field("friction", _friction), line=src.line(path),
+                  restitution=field("restitution", _restitution), mesh=mesh, scale=scale)
+    if len(problems) != before:
+        return None
+    return BodySpec(name=name, shape=shape, size=tuple(size), **fields)
 
 
-def parse_body(item: Any, src: YamlSource, path: Path) -> tuple[BodySpec | None, list[Problem]]:
+def _scale(value: Any) -> tuple[float, float, float]:
+    out = (parse_quantity(value, None),) * 3 if isinstance(value, (int, float, str)) else _vector(value, 3)
+    if not all(x > 0 for x in out):
+        raise UnitError(f"a scale is a positive number or three, got {short(value)}")
+    return out
+
+
+def parse_body(item: Any, src: YamlSource, path: Path, base_dir: str | None = None
+               ) -> tuple[BodySpec | None, list[Problem]]:
     """One rigid body written as a scene item (``{box: {name: ..., size: ...}}``) at ``path`` (a scenario
-    event's ``add_body``), with the problems found (each with its line)."""
+    event's ``add_body``), with the problems found (each with its line); a mesh file is relative to
+    ``base_dir``."""
     problems: list[Problem] = []
     if not isinstance(item, dict) or len(item) != 1:
         return None, [src.problem(path, "a body is one shape: {box: {name: ..., size: [...], ...}}")]
@@ -200,7 +221,7 @@ def parse_body(item: Any, src: YamlSource, path: Path) -> tuple[BodySpec | None,
         return None, [src.problem(path, f"a body added at run time is one of {', '.join(shapes)}, got {shape!r}"
                                   + did_you_mean(str(shape), shapes))]
     try:
-        body = _body(shape, fields or {}, src, (*path, shape), problems)
+        body = _body(shape, fields or {}, src, (*path, shape), problems, base_dir)
     except (DynabrainError, ValueError, TypeError, ArithmeticError) as exc:
         return None, [src.problem((*path, shape), str(exc))]
     if body is not None and body.parent is not None:
