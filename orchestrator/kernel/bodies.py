@@ -175,6 +175,8 @@ def body_from_detail(detail: dict[str, Any]) -> BodySpec:
     if not isinstance(detail, dict):
         raise BodySpecError(None, "spec", f"a recorded body is a mapping of its fields, got {type(detail).__name__}")
     fields = dict(detail)
+    if fields.get("mesh") is not None and not isinstance(fields["mesh"], dict):
+        raise BodySpecError(fields.get("name"), "mesh", "a recorded mesh is its vertices and faces, not a file")
     for key, cls in (("joint", JointSpec), ("cable", CableSpec)):
         value = fields.get(key)
         if isinstance(value, dict):

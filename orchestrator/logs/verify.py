@@ -3,7 +3,9 @@
 The world is rebuilt from the scenario text in the log's metadata (written to a temporary folder, its
 relative paths such as ``model:`` resolved against the original scenario's folder), with the recorded
 seed and history depth. Then the recording is played back as a script: edits a brain made (events
-whose source is ``api``) are applied at their ticks, in their order; rollbacks are applied where they
+whose source is ``api``: modules, parameters, inputs, selections, bodies added (from their recorded
+spec, a mesh's vertices included) and removed, materials, joints of every kind) are applied at their
+ticks, in their order; rollbacks are applied where they
 happened (``backtick`` to the recorded tick; a ``restore`` to the snapshot the replay took at that tick
 whose bus matches the recorded one; a failed tick must fail again). Every bus row the run produced,
 discarded ones included, is compared bit for bit with the row the replay produces at the same epoch
@@ -24,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from ..kernel.bodies import BodySpecError, body_from_detail
 from ..kernel.errors import DynabrainError, ModuleError, ScenarioError
 from ..kernel.observers import WorldView
 from ..scenario.make import ModuleSpecError, make_module
@@ -34,8 +37,9 @@ from .scan import LogError
 from .schema import TOPIC_BUS, BusCodec
 
 EDITS = ("module_added", "module_removed", "param", "set", "make", "make_joint", "remove_joint", "no_collision",
-         "place", "connect", "disconnect")
+         "place", "connect", "disconnect", "body_added", "body_removed", "material")
 NEEDS = {"module_added": ("spec",), "module_removed": ("module",), "param": ("name", "value"),
+         "body_added": ("body", "spec"), "body_removed": ("body",), "material": ("body", "friction", "restitution"),
          "set": ("name", "value"), "make": ("objects",), "make_joint": ("a", "b"), "remove_joint": ("joint",),
          "no_collision": ("objects",), "place": ("body", "pos"), "connect": ("src", "dst"), "disconnect": ("dst",),
          "rollback": ("from_tick", "to_tick", "cause"), "error": (), "snapshot": ("id",)}
@@ -299,7 +303,19 @@ def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".") -> None:
     elif kind in ("make", "no_collision"):
         getattr(world, kind)(d["objects"])
     elif kind == "make_joint":
-        world.make_joint(d["a"], d["b"], name=d.get("joint"))
+        world.make_joint(d["a"], d["b"], name=d.get("joint"), kind=d.get("kind", "weld"), axis=d.get("axis"),
+                         anchor=d.get("anchor"))
+    elif kind == "body_added":
+        try:  # a recorded body is plain values (a mesh's vertices and faces, not its file): no code runs
+            spec = body_from_detail(d["spec"])
+        except BodySpecError as exc:
+            raise LogError(f"the recording adds body {d.get('body')!r} at tick {world.tick_count}, whose recorded "
+                           f"spec is damaged: {exc}") from None
+        world.add_body(spec)
+    elif kind == "body_removed":
+        world.remove_body(d["body"])
+    elif kind == "material":
+        world.set_material(d["body"], friction=d["friction"], restitution=d["restitution"])
     elif kind == "remove_joint":
         world.remove_joint(d["joint"])
     elif kind == "place":
