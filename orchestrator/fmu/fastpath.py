@@ -47,6 +47,29 @@ class Plan(ctypes.Structure):
 @functools.cache
 def helper() -> Callable[..., int] | None:
     """The compiled step helper, or None (no compiler, or ``DYNABRAIN_FMU_FASTPATH=0``)."""
+    lib = _library()
+    if lib is None:
+        return None
+    fn = lib.dyn_step
+    fn.argtypes = [c_void_p, c_void_p, c_void_p]
+    fn.restype = c_int
+    return fn
+
+
+@functools.cache
+def group_helper() -> Callable[..., int] | None:
+    """The helper that steps several FMUs in one call (``dyn_group``: `orchestrator.fmu.fused`), or None."""
+    lib = _library()
+    if lib is None:
+        return None
+    fn = lib.dyn_group
+    fn.argtypes = [c_void_p, c_void_p, c_void_p]
+    fn.restype = c_int
+    return fn
+
+
+@functools.cache
+def _library() -> ctypes.CDLL | None:
     if os.environ.get("DYNABRAIN_FMU_FASTPATH", "1") == "0":
         return None
     src = glue_dir() / "dyn_step.c"
@@ -64,13 +87,10 @@ def helper() -> Callable[..., int] | None:
             finally:
                 if os.path.exists(tmp):
                     os.unlink(tmp)
-        fn = ctypes.CDLL(str(lib)).dyn_step
+        return ctypes.CDLL(str(lib))
     except (FMUBuildError, OSError) as exc:
         _log.info("FMU step helper unavailable, stepping FMUs from Python: %s", exc)
         return None
-    fn.argtypes = [c_void_p, c_void_p, c_void_p]
-    fn.restype = c_int
-    return fn
 
 
 def decode(version: int, rc: int) -> tuple[str, int]:

@@ -23,8 +23,9 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import weakref
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,9 +33,13 @@ from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.module import Capabilities, Module, Param, Port, SetupContext
 from .clocks import check_periods
 from .errors import FMUCallError, FMUError
+from .fused import FusedFMUs, GroupSerialized, GroupState
 from .info import DIMENSIONS, FmuInfo, Signal
 from .session import Session
 from .states import FMUState, SerializedFMUState
+
+if TYPE_CHECKING:
+    from ..kernel.structure import Copies
 
 _log = logging.getLogger("dynabrain.fmu")
 _LISTED: set[str] = set()  # FMUs whose variables not on the bus were listed (once per process)
@@ -189,8 +194,10 @@ class FMUModule(FMUModuleBase):
                  start_time: float | None = None, **params: Any):
         super().__init__(name, info, source=source, targets=targets, start_time=start_time, **params)
         self._session: Session | None = None
-        self._state: FMUState | SerializedFMUState | None = None
+        self._state: FMUState | GroupState | SerializedFMUState | None = None
         self._dt_ns = 0
+        self._fused: FusedFMUs | None = None  # the group that steps this module with others, if any
+        self._group_pools: weakref.WeakSet = weakref.WeakSet()  # groups' state pools with states of ours
         self._unbind()
 
     def _unbind(self) -> None:
@@ -225,6 +232,26 @@ class FMUModule(FMUModuleBase):
                         and not session.in_typed and not session.out_typed and session.events is None)
         if session.stepper.dt_ns != self._dt_ns:
             session.stepper.set_step(self._dt_ns)
+        self._fused_stale()
+
+    @classmethod
+    def fuse(cls, members: Sequence[Module], copies: Sequence[Copies]) -> FusedFMUs | None:
+        """A chain of FMU modules next to each other in the schedule steps in one call into the C
+        helper (`orchestrator.fmu.fused`) while they all take the hot path of `step`."""
+        return FusedFMUs.make(members, copies) if cls is FMUModule else None  # type: ignore[arg-type]
+
+    def _fusable(self) -> bool:
+        """Whether `step` would take its hot path (with or without states for history) on the C helper."""
+        session = self._session
+        if session is None or not session.stepper.fast or session.api is None or session.api.dead:
+            return False
+        return (session.unusable is None and not self._gather and not self._scatter and not session.in_typed
+                and not session.out_typed and session.events is None)
+
+    def _fused_stale(self) -> None:
+        """Whether this module can be stepped with others changed: its group looks again."""
+        if self._fused is not None:
+            self._fused.ok = None
 
     def start(self, t_ns: int) -> None:
         session = self._require("start")
@@ -261,6 +288,7 @@ class FMUModule(FMUModuleBase):
         finally:
             if session.api.dead or session.unusable is not None:
                 self._simple = False  # the general path refuses to call an instance that failed for good
+                self._fused_stale()
 
     def _copy_in(self) -> None:
         values = self._session.in_values
@@ -290,14 +318,25 @@ class FMUModule(FMUModuleBase):
             self._state = state  # nothing can be restored into a dead instance; the next step says so
             return
         try:
+            if isinstance(state, GroupState):  # the state of a tick stepped with other FMUs (`fused`)
+                handle = state.handle(self)
+                if handle is not None:
+                    session.api.set_state(handle)
+                    session.unusable = None
+                    self._state = state
+                    return
+                state = state.serialized(self.name)  # of another instance: a fork's original
+            elif isinstance(state, GroupSerialized):
+                state = state.of(self.name)
             if state is self._state and isinstance(state, FMUState):
                 session.pool.restore(state)
                 session.unusable = None
                 return
             self._state = session.restore(state)
-        except (FMUError, FMUCallError) as exc:  # the world is rolling back: never leave it half done
+        except (FMUError, FMUCallError, KeyError) as exc:  # the world is rolling back: never leave it half done
             self._state = state
             self._simple = False
+            self._fused_stale()
             session.unusable = (f"{self.info.label}: restoring its state failed ({exc}); the FMI standard allows "
                                 "only to reset or free it now. Remove the module or load the world again")
             _log.warning("module %r: %s", self.name, session.unusable)
@@ -315,6 +354,8 @@ class FMUModule(FMUModuleBase):
         self._state = None
 
     def close(self) -> None:
+        for pool in list(self._group_pools):
+            pool.close_member(self)  # the handles go before the instance does
         session, self._session = self._session, None
         self._state = None
         self._unbind()
@@ -328,7 +369,8 @@ class FMUModule(FMUModuleBase):
         memo[id(self)] = clone
         if self._session is None:
             return clone
-        state = self._session.serialize(self.get_state())
+        state = self.get_state()
+        state = state.serialized(self.name) if isinstance(state, GroupState) else self._session.serialize(state)
         clone._session = Session(self.info, self.name, rollback=clone.CAPABILITIES.can_rollback,
                                  start_time=self.start_time)
         if clone._session.events is not None:

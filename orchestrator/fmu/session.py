@@ -379,6 +379,12 @@ class Session:
         self.unusable = None  # restored to a state from before the failure (FMI: allowed after an error)
         return state
 
+    def serialize_handle(self, handle: int) -> SerializedFMUState:
+        """The FMU state ``handle`` (of this instance) as bytes."""
+        if not self.info.can_serialize:
+            raise FMUError(f"{self.info.label}: this FMU cannot serialize its state (canSerializeFMUstate is false)")
+        return SerializedFMUState(self.info.token, self.api.serialize(handle))
+
     def serialize(self, state: FMUState) -> SerializedFMUState:
         if not self.info.can_serialize:
             raise FMUError(f"{self.info.label}: this FMU cannot serialize its state (canSerializeFMUstate is false)")

@@ -49,9 +49,13 @@ import numpy as np
 
 from .errors import DynabrainError
 from .finite import INLINE, Probe
+from .module import Module
+
+_NO_FUSE = Module.fuse.__func__  # type: ignore[attr-defined]
 
 if TYPE_CHECKING:
-    from .structure import Copies, Structure
+    from .module import Fused
+    from .structure import Copies, Dispatch, Structure
 
 ENV_SWITCH = "DYNABRAIN_COMPILED"
 """The environment variable that picks the tick of every World made without ``compiled=``: ``0``
@@ -116,7 +120,7 @@ class CompiledTick:
         env: dict[str, Any] = {}  # local name -> value, bound as defaults of the function
         taken = {"n", "t_ns", "mv", "buf", "tick"}
         lines: list[str] = []
-        owners: list[str] = []  # the module whose step (or copies) each line runs
+        owners: list[str | Fused | None] = []  # the module whose step (or copies) each line runs
 
         def local(base: str, value: Any) -> str:
             if not base.isidentifier():
@@ -142,14 +146,27 @@ class CompiledTick:
         if delayed:
             lines.append("; ".join(delayed))
             owners.append(_CONNECTIONS)
-        for entry in structure.dispatch:
-            ident = _identifier(entry.name)
-            step = local(f"step_{ident}", entry.step)
-            body = "; ".join([*copies(entry.copies, entry.gather, f"{ident}_in"), f"{step}(t_ns, {entry.period_ns})"])
-            if entry.period_ticks != 1:
-                body = f"if not (n - {entry.phase}) % {entry.period_ticks}: {body}"
-            lines.append(body)
-            owners.append(entry.name)
+        self._fused: dict[str, Fused] = {}  # local name -> modules stepped as one (bound by `bind`)
+        for run in _runs(structure.dispatch):
+            fused = _fuse(run) if len(run) > 1 else None
+            if fused is not None:
+                first, last = _identifier(run[0].name), _identifier(run[-1].name)
+                name = local(f"fused_{first}_{last}", fused)
+                self._fused[name] = fused
+                items: list[tuple[Dispatch, str, str | Fused]] = [(run[0], f"{name}(t_ns, {run[0].period_ns})", fused)]
+            else:
+                items = []
+                for entry in run:
+                    ident = _identifier(entry.name)
+                    step = local(f"step_{ident}", entry.step)
+                    call = f"{step}(t_ns, {entry.period_ns})"
+                    items.append((entry, "; ".join([*copies(entry.copies, entry.gather, f"{ident}_in"), call]),
+                                  entry.name))
+            for entry, body, owner in items:
+                if entry.period_ticks != 1:
+                    body = f"if not (n - {entry.phase}) % {entry.period_ticks}: {body}"
+                lines.append(body)
+                owners.append(owner)
         # the finite-output check: each span's sum (a short one written out), added up, tested once
         self._check = structure.output_check
         terms: list[str] = []
@@ -178,14 +195,18 @@ class CompiledTick:
         self.filename, self.run = _define(self.source, "tick", "tick", env)
         _forget([self.run.__code__], self.filename)
         first = len(head) + 1  # the line number of lines[0]
-        self._owner = {first + i: owner for i, owner in enumerate(owners) if owner is not None}
+        self._owner: dict[int, str | Fused] = {first + i: owner for i, owner in enumerate(owners) if owner is not None}
 
     def bind(self, mv: memoryview, buf: np.ndarray) -> Callable[[int, int], None]:
         """The tick on the bus ``buf`` (``mv``, its memoryview): ``tick(n, t_ns)``, the same code as `run`
         with the bus and the output check's spans on it bound as defaults (fast locals)."""
         run = self.run
         probes = self._check.probes(buf, mv)
-        bound = (mv, buf, *(value for k in self._called for value in probes[k]), *(run.__defaults__ or ()))
+        names = run.__code__.co_varnames[len(run.__code__.co_varnames) - len(run.__defaults__ or ()):
+                                          run.__code__.co_argcount]
+        defaults = [self._fused[n].bind(buf) if n in self._fused else v
+                    for n, v in zip(names, run.__defaults__ or (), strict=True)]
+        bound = (mv, buf, *(value for k in self._called for value in probes[k]), *defaults)
         return FunctionType(run.__code__, run.__globals__, run.__name__, bound)
 
     def failed_module(self, tb: TracebackType | None) -> str | None:
@@ -193,9 +214,37 @@ class CompiledTick:
         of an exception out of `run`: the line of the generated function it went through."""
         while tb is not None:
             if tb.tb_frame.f_code.co_filename == self.filename:
-                return self._owner.get(tb.tb_lineno)
+                owner = self._owner.get(tb.tb_lineno)
+                return owner if owner is None or isinstance(owner, str) else owner.failing
             tb = tb.tb_next
         return None
+
+
+def _runs(dispatch: Sequence[Dispatch]) -> list[list[Dispatch]]:
+    """The entries in schedule order, cut into runs that `Module.fuse` may step as one: next to each
+    other, modules of one class that fuses, due at the same ticks, with their copies made on the
+    memoryview (single values or plain slices). Every other entry is a run of its own."""
+    runs: list[list[Dispatch]] = []
+    key = None  # what the last run shares, when it may grow
+    for entry in dispatch:
+        module = getattr(entry.step, "__self__", None)
+        cls = type(module)
+        fuses = (module is not None and getattr(cls.fuse, "__func__", None) is not _NO_FUSE and not entry.gather
+                 and all(isinstance(i, (int, np.integer)) or (isinstance(i, slice) and i.step in (None, 1))
+                         for pair in entry.copies for i in pair))
+        here = (cls, entry.period_ns, entry.period_ticks, entry.phase) if fuses else None
+        if here is not None and here == key:
+            runs[-1].append(entry)
+        else:
+            runs.append([entry])
+        key = here
+    return runs
+
+
+def _fuse(run: Sequence[Dispatch]) -> Fused | None:
+    """The run's modules stepped as one, when their class says how (`Module.fuse`)."""
+    members = [e.step.__self__ for e in run]  # type: ignore[attr-defined]
+    return type(members[0]).fuse(members, [e.copies for e in run])
 
 
 class PlainTick:

@@ -58,7 +58,7 @@ import types
 from abc import ABCMeta
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -68,6 +68,7 @@ from .units import parse_quantity
 
 if TYPE_CHECKING:
     from .core import PhysicsCore
+    from .structure import Copies
 
 
 NO_PORTS = np.zeros(0)  # what `Module.inp_flat` and `out_flat` are while a module is not bound
@@ -224,6 +225,16 @@ class PortBinding:
     the world that bound it then records the new values in the states it saves from then on."""
 
 
+class Fused(Protocol):
+    """Modules stepped as one (`Module.fuse`). ``bind(buf)`` gives the tick's call for the bus ``buf``:
+    ``step(t_ns, dt_ns)`` makes the members' copies and steps, in order. After an exception out of
+    it, ``failing`` names the member whose step raised."""
+
+    failing: str | None
+
+    def bind(self, buf: np.ndarray) -> Callable[[int, int], None]: ...
+
+
 class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook has a default
     """Base class of every module. See the module docstring for the lifecycle.
 
@@ -373,6 +384,16 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
 
     def set_state(self, state: Any) -> None:  # noqa: B027
         """Take back a state returned by `get_state` (copy what you keep)."""
+
+    @classmethod
+    def fuse(cls, members: Sequence[Module], copies: Sequence[Copies]) -> Fused | None:
+        """Step ``members`` (modules of this class, next to each other in the schedule, due at the same
+        ticks) as one: a `Fused` that makes each member's input ``copies`` (``Copies`` on the bus, as
+        the tick makes them) and steps it, in schedule order, with the same results bit for bit as the
+        separate steps. The compiled tick asks when it is built; None (the default) keeps the steps
+        apart. A class answers when one call into its own code (compiled, say) is cheaper than the
+        members' calls from Python: the FMU module's C step helper does (`orchestrator.fmu.fused`)."""
+        return None
 
     def steps_change_state(self) -> bool:
         """Whether `step` may change what `get_state` returns. The answer holds until a parameter

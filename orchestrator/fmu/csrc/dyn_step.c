@@ -64,3 +64,41 @@ __attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, v
     if (state) CHECK(4, ((state_t)p->get_state)(p->instance, state));
     return warn;
 }
+
+/* Several FMUs stepped as one (`orchestrator.fmu.fused`): for each member in schedule order, the bus
+ * copies its inputs need (element runs of the bus, as the tick would make them), then `dyn_step`
+ * with the state saved into states[i]. codes[i] gets the member's result; the first member whose
+ * status is worse than Warning ends the call (the world rolls the tick back): its index plus one is
+ * returned, and the members after it get 0. Otherwise the result is 0, or -1 when some member
+ * warned (codes say which). One call from Python instead of one per member: about 0.4 us less per
+ * FMU and step. */
+typedef struct {
+    size_t dst, src, n;
+} Copy;
+
+typedef struct {
+    size_t n;
+    const Plan *const *plans;
+    const size_t *first_copy; /* member i's copies are copies[first_copy[i] .. first_copy[i + 1]) */
+    const Copy *copies;
+    double *bus;
+    int *codes;
+} Group;
+
+__attribute__((visibility("default"))) int dyn_group(const Group *g, void *t_ns, void **states) {
+    int warned = 0;
+    for (size_t i = 0; i < g->n; ++i) {
+        for (size_t c = g->first_copy[i]; c < g->first_copy[i + 1]; ++c) {
+            const Copy *k = &g->copies[c];
+            for (size_t j = 0; j < k->n; ++j) g->bus[k->dst + j] = g->bus[k->src + j];
+        }
+        int rc = dyn_step(g->plans[i], t_ns, states ? states + i : NULL);
+        g->codes[i] = rc;
+        if ((rc & 15) > 1) {
+            for (size_t j = i + 1; j < g->n; ++j) g->codes[j] = 0;
+            return (int)i + 1;
+        }
+        if (rc) warned = 1;
+    }
+    return warned ? -1 : 0;
+}
