@@ -71,9 +71,8 @@ def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: boo
         except OSError as exc:
             raise DynabrainError(f"cannot create the folder of the log {path}: {exc.strerror}") from None
         # a scenario run never backticks (a failed tick discards nothing): no window needed
-        ros2 = ros2_schemas or bool(getattr(cfg, "ros2_schemas", False))
-        logger = McapLogger(path, decimate=cfg.decimate, window=0, **({"ros2": True} if ros2 else {})
-                            ).attach(world, scenario)
+        ros2 = ros2_schemas or cfg.ros2_schemas
+        logger = McapLogger(path, decimate=cfg.decimate, window=0, ros2=ros2).attach(world, scenario)
         console.print(f"recording to {path}" + (" (with ROS 2 messages)" if ros2 else ""), markup=False)
     return RunOutputs(logger, view, console)
 

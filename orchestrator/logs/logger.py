@@ -121,12 +121,14 @@ class McapLogger(Observer):
     ``batch``: ticks encoded and written together (at most ``flush_s / 2`` s after the first is due);
     ``chunk_bytes``, ``chunk_s``, ``flush_s``, ``level``: a chunk's size at most, the simulated time it
     spans at most, its age (wall time) at most, the zstd level; ``writer``: ``"process"`` (a child
-    process writes the file; the default) or ``"thread"`` (a thread of this process).
+    process writes the file; the default) or ``"thread"`` (a thread of this process); ``ros2``: also
+    ``/clock`` and ``/joint_states``, and ``/tf`` as ``tf2_msgs/msg/TFMessage``, in CDR with ``ros2msg``
+    schemas (`logs.sink.Ros2Rows`), for rosbag2 users.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, decimate: int = 1, scene_every: int | None = None,
                  window: int = 64, batch: int = 256, chunk_bytes: int = 1 << 20, chunk_s: float = 1.0,
-                 flush_s: float = 0.25, level: int = -1, writer: str = "process"):
+                 flush_s: float = 0.25, level: int = -1, writer: str = "process", ros2: bool = False):
         for name, value, low in (("decimate", decimate, 1), ("window", window, 0), ("batch", batch, 1),
                                  ("scene_every", scene_every or 1, 1), ("chunk_bytes", chunk_bytes, 1)):
             if not isinstance(value, int) or value < low:
@@ -137,6 +139,7 @@ class McapLogger(Observer):
             raise DynabrainError(f"McapLogger: writer must be 'process' or 'thread', got {writer!r}")
         self.path = os.fspath(path)
         self.writer = writer
+        self.ros2 = bool(ros2)
         self.decimate, self.scene_every, self.window, self.batch = decimate, scene_every, window, batch
         self._writer_args = {"chunk_bytes": chunk_bytes, "chunk_ns": max(1, round(chunk_s * 1e9)), "flush_s": flush_s,
                              "level": level}
@@ -191,12 +194,15 @@ class McapLogger(Observer):
             descriptors = {cls.DESCRIPTOR.full_name: foxglove_descriptor(cls)
                            for cls in (FrameTransforms, SceneUpdate, Log)}
             sink = ProcessSink if self.writer == "process" else ThreadSink
-            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors)
+            self._sink = sink(self.path, self._writer_args, self._dt, self.decimate, self._bodies, descriptors,
+                              self.ros2)
             wall_ns = time.time_ns()  # the run starts now (the writer has started): log times count from here
             self.origin_ns = wall_ns - view.tick * self._dt
             try:
                 settings = {"decimate": self.decimate, "scene_every": self.scene_every, "window": self.window,
                             "batch": self.batch, "writer": self.writer, **self._writer_args}
+                if self.ros2:
+                    settings["ros2"] = True
                 meta = run_metadata(world, scenario, settings, wall_ns=wall_ns, origin_ns=self.origin_ns)
                 self._sink.call(Metadata(METADATA_NAME, meta))
                 self._refresh_layout(view)
@@ -425,7 +431,7 @@ class McapLogger(Observer):
             codec = BusCodec.from_view(slots, size, self._numbers, len(self._codecs) + 1)
             self._codecs[signature] = codec
             cols, missing = self._pose_index[codec.key] = self._pose_plan(view, codec)
-            self._sink.call(Layout(codec.key, codec.metadata(), cols, missing))
+            self._sink.call(Layout(codec.key, codec.metadata(), cols, missing, self._joints(view, slots)))
             detail: dict[str, Any] = {"layout": codec.key, "topic": bus_topic(codec.key), "signals": len(codec.slots),
                                       "values": size}
             if self._codec is not None:
@@ -435,6 +441,17 @@ class McapLogger(Observer):
         self._codec = codec
         self._missing = self._pose_index[codec.key][1]
         self._dirty = False
+
+    def _joints(self, view: WorldView, slots: dict) -> tuple[tuple[str, ...], np.ndarray] | None:
+        """For ROS 2 messages: the joints of ``/joint_states`` and their bus columns (q, qd[, effort])."""
+        if not self.ros2 or view.core is None:
+            return None
+        from .ros2msgs import ros2_signals
+
+        signals = ros2_signals(view.core.name, view.core.joints(), (), slots)
+        groups = 3 if signals.effort else 2
+        cols = [slots[name][0] for name in signals.names]
+        return signals.joints, np.array(cols, dtype=np.intp).reshape(groups, len(signals.joints))
 
     def _pose_plan(self, view: WorldView, codec: BusCodec) -> tuple[np.ndarray, list[str]]:
         if self._bodies is None:

@@ -35,12 +35,15 @@ class Metadata(NamedTuple):
 
 class Layout(NamedTuple):
     """A bus layout: ``key`` names its codec (made again from the channel ``meta``); ``cols`` are the
-    bus columns of each body's pose, ``missing`` the bodies whose poses the bus lacks (sent in ``extra``)."""
+    bus columns of each body's pose, ``missing`` the bodies whose poses the bus lacks (sent in ``extra``);
+    ``joints``: for a log with ROS 2 messages, the joints of ``/joint_states`` and their bus columns (rows
+    q, qd and, when the joints have a force, effort)."""
 
     key: int
     meta: Mapping[str, str]
     cols: np.ndarray
     missing: list[str]
+    joints: tuple[tuple[str, ...], np.ndarray] | None = None
 
 
 class Event(NamedTuple):
@@ -103,6 +106,7 @@ class Open(NamedTuple):
     decimate: int
     bodies: list[str] | None
     descriptors: dict[str, bytes]
+    ros2: bool = False
 
 
 class Shared(NamedTuple):

@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from rosbags.typesys import Stores, get_typestore
 
 CLOCK, TF, JOINT_STATE = "rosgraph_msgs/msg/Clock", "tf2_msgs/msg/TFMessage", "sensor_msgs/msg/JointState"
 ROS_DISTRO = "jazzy"
@@ -34,6 +33,8 @@ class Codec:
     definitions."""
 
     def __init__(self) -> None:
+        from rosbags.typesys import Stores, get_typestore  # loaded only when ROS 2 messages are made
+
         self.store = get_typestore(Stores.ROS2_JAZZY)
         self.types = self.store.types
         self._hashes: dict[str, str] = {}

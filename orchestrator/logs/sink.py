@@ -107,7 +107,7 @@ class LogSink:
     """The writing side of a log (see the module docstring): runs where the `McapWriter` is."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], ros2: bool = False):
         self.writer = McapWriter(path, **writer_args)  # no profile: dynabrain is no well-known MCAP profile
         self.dt, self.decimate = dt_ns, decimate
         self.origin = 0
@@ -121,6 +121,7 @@ class LogSink:
         self.schema_ids: dict[int | str | tuple[str, int], int] = {}
         self.imagined_codecs: dict[tuple, BusCodec] = {}  # by the signals' (name, shape, unit)
         self.imagined_poses: dict[tuple[str, ...], PoseCodec] = {}
+        self.ros2 = Ros2Rows(self) if ros2 else None
         self.events_channel()
 
     # -- calls ------------------------------------------------------------------------------------------
@@ -129,11 +130,15 @@ class LogSink:
             self.origin = int(values["time_origin_ns"])
         self.writer.add_metadata(name, values)
 
-    def layout(self, key: int, meta: Mapping[str, str], cols: np.ndarray, missing: list[str]) -> None:
-        """A bus layout (a codec, by its channel metadata) and where its poses are. The codecs encode a
-        row once now, so that their first real batch does not pay for the first use of their code."""
+    def layout(self, key: int, meta: Mapping[str, str], cols: np.ndarray, missing: list[str],
+               joints: tuple[tuple[str, ...], np.ndarray] | None = None) -> None:
+        """A bus layout (a codec, by its channel metadata) and where its poses are (and, for ROS 2
+        messages, its joints). The codecs encode a row once now, so that their first real batch does not
+        pay for the first use of their code."""
         codec = BusCodec.from_metadata(meta)
         self.layouts[key] = (codec, cols, missing)
+        if self.ros2 is not None:
+            self.ros2.joints[key] = joints
         row = np.zeros((1, codec.size))
         codec.encode(row, np.zeros(1, np.int64), np.zeros(1, np.int64), self.dt)
         if self.poses is not None:
@@ -162,20 +167,23 @@ class LogSink:
             codec.encode(rows[part], ticks[part], epochs[part], dt, out=out)
 
         parts = [Part(self.bus_channel(codec, prefix), log, epochs, codec.length, bus, t_ns)]
-        if self.poses is not None:
-            due = np.flatnonzero(ticks % self.decimate == 0)
-            if len(due):
-                ext = rows if len(due) == n else rows[due]
-                if missing:
-                    ext = np.concatenate([ext, extra[due]], axis=1)
-                pose, stamps = ext[:, cols], log[due]
-                poses = self.poses
+        due = np.flatnonzero(ticks % self.decimate == 0)
+        pose = None
+        if self.poses is not None and len(due):
+            ext = rows if len(due) == n else rows[due]
+            if missing:
+                ext = np.concatenate([ext, extra[due]], axis=1)
+            pose, stamps = ext[:, cols], log[due]
+            poses = self.poses
 
-                def fill(out: np.ndarray, part: slice) -> None:
-                    poses.encode(pose[part, :, :3], pose[part, :, 3:], stamps[part], out=out)
+            def fill(out: np.ndarray, part: slice) -> None:
+                poses.encode(pose[part, :, :3], pose[part, :, 3:], stamps[part], out=out)
 
+            if self.ros2 is None:
                 parts.append(Part(self.proto_channel(prefix + TOPIC_TF, "foxglove.FrameTransforms"), stamps,
                                   epochs[due], poses.length, fill, t_ns[due]))
+        if self.ros2 is not None and len(due):
+            parts += self.ros2.parts(key, prefix, rows[due], pose, t_ns[due], epochs[due])
         for row, scene in scenes:
             parts.append(_single(self.proto_channel(prefix + TOPIC_SCENE, "foxglove.SceneUpdate"), int(t_ns[row]),
                                  origin, scene, epoch))
@@ -265,17 +273,18 @@ class LogSink:
             cid = self.channels[(topic, key)] = make()
         return cid
 
-    def _add_channel(self, topic: str, sid: int, meta: Mapping[str, str] | None = None) -> int:
+    def _add_channel(self, topic: str, sid: int, meta: Mapping[str, str] | None = None,
+                     encoding: str = "protobuf") -> int:
         """A channel on ``topic`` with schema ``sid``: a topic keeps one schema (a second one is a bug)."""
         known = self.topic_schemas.setdefault(topic, sid)
         if known != sid:
             raise DynabrainError(f"the log writer put two schemas on topic {topic} ({known} and {sid})")
-        return self.writer.add_channel(topic, "protobuf", sid, meta)
+        return self.writer.add_channel(topic, encoding, sid, meta)
 
-    def _schema(self, key: Hashable, name: str, data: Callable[[], bytes]) -> int:
+    def _schema(self, key: Hashable, name: str, data: Callable[[], bytes], encoding: str = "protobuf") -> int:
         sid = self.schema_ids.get(key)
         if sid is None:
-            sid = self.schema_ids[key] = self.writer.add_schema(name, "protobuf", data())
+            sid = self.schema_ids[key] = self.writer.add_schema(name, encoding, data())
         return sid
 
     def events_channel(self) -> int:
@@ -309,6 +318,67 @@ class LogSink:
             return self._add_channel(topic, self._schema(schema, schema, lambda: self.descriptors[schema]))
 
         return self._channel(topic, make)
+
+    def ros2_channel(self, topic: str, msgtype: str, msgdef: Callable[[], bytes]) -> int:
+        """A channel of ROS 2 messages: CDR, its schema the ``ros2msg`` definition of ``msgtype``."""
+        def make() -> int:
+            return self._add_channel(topic, self._schema(("ros2", msgtype), msgtype, msgdef, "ros2msg"),
+                                     encoding="cdr")
+
+        return self._channel(topic, make)
+
+
+class Ros2Rows:
+    """A log's ROS 2 messages (``McapLogger(ros2=True)``, `logs.ros2msgs`): at each tick that has poses (every
+    ``decimate``), ``/clock``, ``/joint_states`` and ``/tf`` (``tf2_msgs/msg/TFMessage`` in place of
+    ``foxglove.FrameTransforms``), each encoded by rosbags, stamped with the simulated time (the ``/clock``
+    they go with), with the run's log times, epochs and ``/discarded/...`` topics like every other channel."""
+
+    def __init__(self, sink: LogSink):
+        from .ros2msgs import Codec
+
+        self.sink, self.codec = sink, Codec()
+        self.joints: dict[int, tuple[tuple[str, ...], np.ndarray] | None] = {}
+
+    def parts(self, key: int, prefix: str, rows: np.ndarray, pose: np.ndarray | None, t_ns: np.ndarray,
+              epochs: np.ndarray) -> list[Part]:
+        from .ros2msgs import CLOCK, JOINT_STATE, TF
+
+        codec, sink = self.codec, self.sink
+        stamps = [codec.stamp(int(t)) for t in t_ns]
+        log = t_ns + sink.origin
+        out = _sized(sink.ros2_channel(prefix + "/clock", CLOCK, lambda: codec.msgdef(CLOCK)),
+                     [codec.encode(codec.clock(s)) for s in stamps], log, epochs, t_ns)
+        joints = self.joints.get(key)
+        if joints is not None and joints[0]:
+            names, cols = joints
+            q, qd = rows[:, cols[0]], rows[:, cols[1]]
+            effort = rows[:, cols[2]] if len(cols) > 2 else np.zeros((len(rows), 0))
+            data = [codec.encode(codec.joint_state(s, names, q[i], qd[i], effort[i])) for i, s in enumerate(stamps)]
+            out += _sized(sink.ros2_channel(prefix + "/joint_states", JOINT_STATE, lambda: codec.msgdef(JOINT_STATE)),
+                          data, log, epochs, t_ns)
+        if pose is not None and sink.poses is not None and sink.poses.bodies:
+            bodies = sink.poses.bodies
+            data = [codec.encode(codec.tf_message(s, bodies, pose[i, :, :3], pose[i, :, 3:]))
+                    for i, s in enumerate(stamps)]
+            out += _sized(sink.ros2_channel(prefix + TOPIC_TF, TF, lambda: codec.msgdef(TF)), data, log, epochs, t_ns)
+        return out
+
+
+def _sized(channel: int, data: list[bytes], log_times: np.ndarray, epochs: np.ndarray,
+           publish_times: np.ndarray) -> list[Part]:
+    """Messages of one channel as `Part`s, one per message size (a part's messages have one size)."""
+    sizes = np.array([len(d) for d in data])
+    parts = []
+    for size in np.unique(sizes):
+        at = np.flatnonzero(sizes == size)
+        block = np.frombuffer(b"".join(data[i] for i in at), dtype=np.uint8).reshape(len(at), int(size))
+
+        def fill(out: np.ndarray, part: slice, block: np.ndarray = block) -> None:
+            out[:] = block[part]
+
+        parts.append(Part(channel, log_times[at], epochs[at], int(size), fill, publish_times[at]))
+    return parts
 
 
 def _single(channel: int, time_ns: int, origin_ns: int, data: bytes, epoch: int) -> Part:
@@ -424,8 +494,8 @@ class ThreadSink:
     """The sink on the writer's thread of this process."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
-        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors)
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], ros2: bool = False):
+        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors, ros2)
         self._writer = self._sink.writer
         self._stats: dict[str, float] = {}
 
@@ -485,7 +555,7 @@ class ProcessSink:
     """The sink in a child process (see the module docstring)."""
 
     def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes]):
+                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], ros2: bool = False):
         try:  # refuse a path that cannot be written here and now, not at the child's first write
             os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
         except OSError as exc:
@@ -503,7 +573,7 @@ class ProcessSink:
         self._stats: dict[str, float] = {}
         try:
             self._send(Open(path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
-                            dict(descriptors)))
+                            dict(descriptors), ros2))
             reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
             if type(reply) is not Ready:
                 raise DynabrainError(_reason(reply))

@@ -96,6 +96,8 @@ class ExpectCfg(_Strict):
 class LogCfg(_Strict):
     mcap: str | None = None
     decimate: Annotated[int, Field(strict=True, ge=1)] = 1
+    ros2_schemas: Annotated[bool, Field(strict=True)] = False
+    """Also write /clock, /joint_states and /tf as ROS 2 messages (CDR, ros2msg schemas); ``--ros2-schemas``."""
 
 
 class ScenarioModel(_Strict):
