@@ -4,9 +4,17 @@ The same channels as a log (`logs.schema`): ``/bus`` (``/bus/layout<k>`` after m
 ``/tf``, ``/scene``, ``/events`` (``foxglove.Log``), encoded the same way, with the same times (log
 time: the wall-clock time at `attach` plus the simulated time since), through foxglove-sdk's server
 bound to 127.0.0.1 (port 8765 by default, the app's default; another free port when that one is
-taken; 0 asks for any). The server speaks the ``foxglove.sdk.v1`` subprotocol, the only one
-foxglove-sdk accepts (it refuses ``foxglove.websocket.v1``, the older name, with HTTP 400); the
-Foxglove app offers both.
+taken; 0 asks for any; a port asked for by an option that is taken is an error naming both, `LiveOptions`).
+`dynabrain run --live`, ``serve --live`` (`BridgeServer`'s ``options.live``) and ``replay --live``
+(`logs.replay.LogView`, a recorded run) share the server part, `FoxgloveServer`.
+
+Subprotocol. foxglove-sdk 0.30.3 (the one installed) accepts ``foxglove.sdk.v1`` and ``foxglove.sdk.v1.1``
+only (`SUBPROTOCOLS`): its handshake (``rust/foxglove/src/websocket/handshake.rs``: "If the client requests
+subprotocols which don't contain ours, or does not include the expected header, return a 400") refuses a
+client that offers only ``foxglove.websocket.v1``, the older name, with HTTP 400 "Missing expected
+sec-websocket-protocol header", and ``start_server`` has no option for another name (its parameters: name,
+host, port, capabilities, listener, encodings, services, assets, context, session, channel filter, playback
+range, backlog, TLS). The Foxglove app offers both names and gets ``foxglove.sdk.v1``.
 
 Rate. The view sends every ``every``-th tick (1, the default: every tick the world makes, at the
 world's own rate: 500 messages a second per channel for a 2 ms step), and at once after a rollback or

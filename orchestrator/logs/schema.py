@@ -25,6 +25,10 @@ Topics, one schema each (what the MCAP spec expects of a topic):
   The channel's metadata holds the layout (signal -> offset, shape, unit) that turns a message back
   into the bus array; a ``layout`` event names the topic of each new layout.
 - ``/tf``: body poses as ``foxglove.FrameTransforms`` (parent ``world``, child the body's name).
+- with ROS 2 messages (``McapLogger(ros2=True)``, ``run --ros2-schemas``; `logs.sink.Ros2Rows`): ``/tf`` as
+  ``tf2_msgs/msg/TFMessage`` instead, ``/clock`` (``rosgraph_msgs/msg/Clock``) and ``/joint_states``
+  (``sensor_msgs/msg/JointState``), in CDR with ``ros2msg`` schemas (`logs.ros2msgs`), header stamps and the
+  clock in simulated time, at the ticks that have poses.
 - ``/scene``: the bodies' geometry as ``foxglove.SceneUpdate`` (see `logs.scene`).
 - ``/events``: events (edits, parameter changes, rollbacks, errors, expectation results) as
   ``foxglove.Log`` (what Foxglove's Log panel shows): ``name`` is the event's kind, ``level`` says how

@@ -2,9 +2,9 @@
 
 The logger (`logs.logger`) runs on the world's stepping thread: it copies bus rows into blocks and
 decides what is written when. A *sink* does the rest: it registers channels, encodes batches of rows
-into ``/bus``, ``/tf`` and ``/scene`` messages and imagined branches into ``/imagined/...`` ones,
-writes events and metadata, and hands chunks to the `McapWriter`. Every sink call arrives in the order
-the logger made it.
+into ``/bus``, ``/tf`` and ``/scene`` messages (and, when asked, ROS 2 ones: `Ros2Rows`) and imagined
+branches into ``/imagined/...`` ones, writes events and metadata, and hands chunks to the `McapWriter`.
+Every sink call arrives in the order the logger made it.
 
 Log-time order. A batch of rows goes to the writer as one group (`McapWriter.add_group`: its bus,
 pose and scene messages merged by time), with the events and imagined messages whose time has come.
