@@ -11,10 +11,18 @@ An FMU with clocks runs with event mode (``eventModeUsed``). Its clocks:
   ticks it at its end;
 - an output clock is an output port (unit ``clock``): 1 after a step at whose end it ticked, else 0.
 
+- an input clock whose interval the FMU gives while it runs (``intervalVariability`` tunable without
+  ``intervalDecimal``, changing, countdown): the module ticks it too, at the times the FMU says
+  (``fmi3GetIntervalDecimal`` with its qualifiers, read in initialization and after every event;
+  see `events`): a tunable clock is periodic and a changed interval counts from the event it was
+  read at; a changing clock's next interval is read at each of its ticks; a countdown clock ticks
+  once when the interval read (``fmi3IntervalChanged``) runs out. Each interval must be a positive
+  whole number of the module's periods (a run-time error naming the clock and the time otherwise).
+  A tunable clock with ``intervalDecimal`` is run as a constant one (the master never sets it).
+
 Clock ports connect only to clock ports (the bus refuses a connection between units ``clock`` and
 anything else). Clocked variables (``clocks="..."``) are set and read only in event mode, at the
-ticks of their clocks; in between the bus holds their last values. Tunable, changing and countdown
-clocks (an interval that changes while the FMU runs) are refused at load.
+ticks of their clocks; in between the bus holds their last values.
 """
 
 from __future__ import annotations
@@ -29,6 +37,8 @@ from .errors import FMUError
 
 TIME_BASED = ("constant", "fixed", "calculated")
 """Input clocks whose interval is known once the FMU is initialized: the module ticks them."""
+DYNAMIC = ("tunable", "changing", "countdown")
+"""Input clocks whose interval the FMU gives while it runs: the module ticks them when it says."""
 CLOCK_UNIT = "clock"
 
 
@@ -49,13 +59,19 @@ class FmuClock:
 
     @property
     def timed(self) -> bool:
-        """An input clock the module ticks itself, by time."""
-        return self.causality == "input" and self.variability in TIME_BASED
+        """An input clock the module ticks itself, by a fixed interval."""
+        return self.causality == "input" and (self.variability in TIME_BASED
+                                              or (self.variability == "tunable" and self.interval is not None))
+
+    @property
+    def dynamic(self) -> bool:
+        """An input clock the module ticks itself, when the FMU says (see `DYNAMIC`)."""
+        return self.causality == "input" and self.variability in DYNAMIC and not self.timed
 
     @property
     def on_bus(self) -> bool:
         """A triggered input clock or an output clock: a port of unit ``clock``."""
-        return not self.timed
+        return not self.timed and not self.dynamic
 
 
 def read_clocks(path: Path, md: Any, name: str) -> tuple[FmuClock, ...]:
@@ -76,10 +92,11 @@ def read_clocks(path: Path, md: Any, name: str) -> tuple[FmuClock, ...]:
         if v.causality not in ("input", "output"):
             raise FMUError(f"FMU {name}: clock {v.name!r} is a {v.causality} clock; the adapter runs input and output "
                            "clocks")
-        if v.causality == "input" and variability not in (*TIME_BASED, "triggered"):
+        if v.causality == "input" and variability not in (*TIME_BASED, *DYNAMIC, "triggered"):
             raise FMUError(f"FMU {name}: clock {v.name!r} is {variability or 'of no interval variability'}; the "
-                           "adapter runs constant, fixed, calculated and triggered input clocks")
-        if clock.timed and variability != "calculated" and not (clock.interval and clock.interval > 0):
+                           "adapter runs constant, fixed, calculated, tunable, changing, countdown and triggered "
+                           "input clocks")
+        if clock.timed and variability == "constant" and not (clock.interval and clock.interval > 0):
             raise FMUError(f"FMU {name}: clock {v.name!r} ({variability}) has no period: it declares no "
                            "intervalDecimal")
         out.append(clock)

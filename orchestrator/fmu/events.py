@@ -13,9 +13,15 @@ needs event handling (an output clock it ticked during the step), the session:
    the clocked outputs of every clock that ticked, and the other outputs again;
 5. goes back to step mode (``fmi3EnterStepMode``).
 
-The schedule depends only on the time the FMU joined the world (``origin_ns``) and each clock's
-interval and shift, fixed once the FMU is initialized: it holds no state of its own, so a rollback
-that restores the FMU's state (always taken in step mode) replays the ticks bit for bit.
+The schedule of the fixed clocks depends only on the time the FMU joined the world (``origin_ns``)
+and each clock's interval and shift, fixed once the FMU is initialized. The clocks whose interval the
+FMU gives (tunable, changing, countdown: `clocks.DYNAMIC`) have a schedule that is state: their
+next tick and interval (`Schedule`), read with ``fmi3GetIntervalDecimal`` at initialization and after
+the discrete states are updated at every event (a qualifier ``fmi3IntervalChanged`` counts the new
+interval from that event; a changing clock's interval is read at each of its ticks; a countdown
+clock that ticked has no next tick until the FMU starts another countdown). The session's state pool
+saves that schedule with each FMU state (taken in step mode, after the events), so a rollback, a
+fork and an isolated restart replay the ticks bit for bit.
 """
 
 from __future__ import annotations
@@ -43,6 +49,9 @@ class Events:
         self.s = session
         info = session.info
         self.timed: list[FmuClock] = [c for c in info.clocks if c.timed]
+        self.schedule = Schedule([c for c in info.clocks if c.dynamic]) if any(c.dynamic for c in info.clocks) \
+            else None
+        """The clocks whose interval the FMU gives, and when each ticks next (state), or None."""
         self.interval_ns: dict[int, int] = {}
         self.shift_ns: dict[int, int] = {}
         self.origin_ns = 0
@@ -78,6 +87,8 @@ class Events:
             what = f"module {self.s.name!r}: the {{}} of clock {clock.name!r}"
             self.interval_ns[clock.vr] = whole_ns(interval, what.format("interval"), self.period_ns)
             self.shift_ns[clock.vr] = whole_ns(clock.shift, what.format("shift"), self.period_ns)
+        if self.schedule is not None:
+            self.schedule.start(self, origin_ns)
         self.handle(origin_ns, False, in_event_mode=True)
 
     def due(self, t_ns: int) -> list[int]:
@@ -87,7 +98,21 @@ class Events:
             since = t_ns - self.origin_ns - self.shift_ns[clock.vr]
             if since >= 0 and since % self.interval_ns[clock.vr] == 0:
                 out.append(clock.vr)
+        if self.schedule is not None:
+            out += self.schedule.due(t_ns)
         return out
+
+    def whole(self, seconds: float, clock: FmuClock, t_ns: int, *, zero: bool = False) -> int:
+        """An interval the FMU gave, in nanoseconds: a whole number of the module's periods (above 0,
+        or 0 where ``zero``), else an error naming the clock and the time."""
+        ns = round(seconds * 1e9) if np.isfinite(seconds) else -1
+        if ns < 0 or (ns == 0 and not zero) or abs(ns - seconds * 1e9) > 1e-3 or ns % self.period_ns:
+            raise FMUCallError(self.s.name, "fmi3GetIntervalDecimal", None,
+                               f"{self.s.info.label}: clock {clock.name!r} ({clock.variability}) was given the "
+                               f"interval {seconds:g} s at t={t_ns / 1e9 + self.s.start_time:g} s, not a "
+                               f"{'' if zero else 'positive '}whole number of the module's periods "
+                               f"({self.period_ns / 1e9:g} s): its tick would fall between two steps")
+        return ns
 
     # -- an event ----------------------------------------------------------------------------------
     def before_step(self) -> None:
@@ -126,6 +151,8 @@ class Events:
             raise FMUCallError(s.name, "fmi3UpdateDiscreteStates", None,
                                f"{s.info.label}: the discrete states still need an update after {MAX_ITERATIONS} "
                                f"updates at t={t_ns / 1e9 + s.start_time:g} s")
+        if self.schedule is not None:
+            self.schedule.after_event(self, t_ns, active)
         ticked = list(active)
         if len(self.out_vrs):
             for (vr, at), on in zip(self.out_clocks, api.get_clocks(self.out_vrs), strict=True):
@@ -138,6 +165,67 @@ class Events:
         s.read_outputs()
         api.enter_step_mode()
         return True
+
+
+class Schedule:
+    """When each clock whose interval the FMU gives ticks next (world ns; -1: not scheduled) and its
+    last interval (tunable, changing): the state `save` and `load` carry with the FMU's state."""
+
+    def __init__(self, clocks: list[FmuClock]):
+        self.clocks = clocks
+        self.vrs = np.array([c.vr for c in clocks], dtype=np.uint32)
+        self.next_ns = np.full(len(clocks), -1, dtype=np.int64)
+        self.interval_ns = np.zeros(len(clocks), dtype=np.int64)
+
+    def save(self) -> bytes:
+        return self.next_ns.tobytes() + self.interval_ns.tobytes()
+
+    def load(self, data: bytes) -> None:
+        both = np.frombuffer(data, dtype=np.int64)
+        n = len(self.clocks)
+        self.next_ns[:], self.interval_ns[:] = both[:n], both[n:]
+
+    def due(self, t_ns: int) -> list[int]:
+        return [int(vr) for vr in self.vrs[self.next_ns == t_ns]]
+
+    def start(self, events: Events, origin_ns: int) -> None:
+        """After initialization: the first tick of each clock (a tunable one at its shift, the others
+        the interval after the start; a countdown not yet known: none)."""
+        s = events.s
+        intervals, qualifiers = s.api.get_intervals(self.vrs)
+        for i, (c, seconds, q) in enumerate(zip(self.clocks, intervals, qualifiers, strict=True)):
+            if q == 0 and c.variability != "countdown":
+                raise FMUError(f"{s.info.label}: clock {c.name!r} ({c.variability}) has no interval after "
+                               "initialization (fmi3GetIntervalDecimal: fmi3IntervalNotYetKnown)")
+            if q == 0:
+                continue
+            if c.variability == "tunable":
+                self.interval_ns[i] = events.whole(float(seconds), c, origin_ns)
+                shift = whole_ns(c.shift, f"module {s.name!r}: the shift of clock {c.name!r}", events.period_ns)
+                self.next_ns[i] = origin_ns + shift
+            else:
+                self.interval_ns[i] = events.whole(float(seconds), c, origin_ns, zero=True)
+                self.next_ns[i] = origin_ns + self.interval_ns[i]
+
+    def after_event(self, events: Events, t_ns: int, active: list[int]) -> None:
+        """After the discrete states are updated at ``t_ns`` (``active``: the input clocks that
+        ticked): read the intervals and schedule the next ticks."""
+        intervals, qualifiers = events.s.api.get_intervals(self.vrs)
+        for i, (c, seconds, q) in enumerate(zip(self.clocks, intervals, qualifiers, strict=True)):
+            ticked = c.vr in active
+            if q == 2:  # fmi3IntervalChanged: counted from this event
+                self.interval_ns[i] = events.whole(float(seconds), c, t_ns)
+                self.next_ns[i] = t_ns + self.interval_ns[i]
+            elif ticked and c.variability == "countdown":
+                self.next_ns[i] = -1  # ran out; the FMU starts another countdown when it will
+            elif ticked and c.variability == "changing" and q == 0:
+                raise FMUCallError(events.s.name, "fmi3GetIntervalDecimal", None,
+                                   f"{events.s.info.label}: changing clock {c.name!r} ticked at "
+                                   f"t={t_ns / 1e9 + events.s.start_time:g} s and gave no next interval")
+            elif ticked:  # periodic (tunable), or a changing clock that kept its interval
+                self.next_ns[i] = t_ns + self.interval_ns[i]
+            elif q == 0 and c.variability == "countdown":
+                self.next_ns[i] = -1
 
 
 def _positions(signals: tuple) -> dict[str, int]:

@@ -133,6 +133,8 @@ class Session:
         """Event mode and clocks (FMI 3.0 clocks; see `clocks`), or None."""
         if self.events is not None:
             self.stepper.use_python()  # it keeps DoStep's eventHandlingNeeded
+            if self.pool is not None and self.events.schedule is not None:
+                self.pool.aux = self.events.schedule  # the clocks' schedule is state: saved with the FMU's
         self.bind(np.zeros(self.n_in_all), np.zeros(self.n_out_all))
 
     @property

@@ -46,7 +46,7 @@ TEXT = ("string", "binary")
 DEFAULT_CAPACITY = 256
 CTYPES = ("double", "float", "int32_t", "uint32_t", "int64_t", "uint64_t", "uint8_t", "int")
 SPEC_FILE = "fmu.yaml"
-RESERVED = {"time", "m", "h"}
+RESERVED = {"time", "m", "h", "fmu_interval_", "fmu_interval_changed_"}
 
 
 class _Strict(BaseModel):
@@ -85,6 +85,11 @@ class ClockCfg(_Strict):
     causality: Literal["input", "output"] = "input"
     interval: float | None = None
     shift: float = 0.0
+    variability: Literal["tunable", "changing", "countdown"] | None = None
+    """An input clock whose interval the model gives while it runs (``fmu_set_interval``), instead of
+    a constant ``interval``: ``tunable`` (periodic; the model may change the interval at an event, the
+    new one counted from there), ``changing`` (the model gives the next interval at each tick) or
+    ``countdown`` (the model starts a countdown at an event; the clock ticks once when it runs out)."""
     description: str = ""
 
 
@@ -128,6 +133,8 @@ class Clock:
     interval: float | None
     shift: float
     description: str
+    variability: str | None = None
+    """``tunable``, ``changing``, ``countdown`` (the model gives the interval), else None."""
 
 
 @dataclass(frozen=True)
@@ -245,7 +252,12 @@ class _Checker:
                 self.report((*path, "interval"), "an output clock ticks when the model says (fmu_tick): no interval")
             if not (math.isfinite(c.shift) and c.shift >= 0 and (c.interval is None or c.shift < c.interval)):
                 self.report((*path, "shift"), "a clock's shift is from 0 up to its interval (seconds)")
-            out.append(Clock(c.name, c.causality, c.interval, c.shift, c.description))
+            if c.variability is not None and (c.causality == "output" or c.interval is not None):
+                self.report((*path, "variability"), f"a {c.variability} clock is an input clock whose interval the "
+                            "model gives with fmu_set_interval: no interval here")
+            if c.variability in ("changing", "countdown") and c.shift:
+                self.report((*path, "shift"), f"a {c.variability} clock has no shift")
+            out.append(Clock(c.name, c.causality, c.interval, c.shift, c.description, c.variability))
         if out and 2 in self.cfg.fmi:
             self.report(("clocks",), "clocks are FMI 3.0: build this FMU for FMI 3.0 only (fmi: [3])")
         known = {c.name for c in out}

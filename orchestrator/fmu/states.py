@@ -8,11 +8,18 @@ handle it returned), so the steady state allocates nothing. The pool frees every
 module closes; a state dropped after that does nothing.
 
 Pickling an `FMUState` serializes it (`SerializedFMUState`, plain bytes), when the FMU can.
+
+A pool may carry state of the master's own beside each FMU state (``aux``: an object with ``save()
+-> bytes`` and ``load(bytes)``; the schedule of the clocks whose interval the FMU gives, see
+`events.Schedule`): it is saved with every capture, loaded with every restore, and appended to the
+serialized bytes (its length in the last 4), so a fork or an isolated restart gets it too.
 """
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -42,6 +49,9 @@ class StatePool:
         self.base = self.slots.ctypes.data
         self.free = list(range(capacity - 1, -1, -1))
         self.alive = True
+        self.aux: Any = None
+        """The master's own state saved with each FMU state (see the module docstring), or None."""
+        self.aux_of: dict[int, bytes] = {}
 
     def take(self) -> int:
         """A free slot (its handle, if any, is overwritten by the next save into it)."""
@@ -69,26 +79,41 @@ class StatePool:
         except BaseException:
             self.free.append(slot)
             raise
+        if self.aux is not None:
+            self.aux_of[slot] = self.aux.save()
         return FMUState(self, slot)
 
     def restore(self, state: FMUState) -> None:
         self.api.set_state(int(self.slots[state.slot]))
+        if self.aux is not None:
+            self.aux.load(self.aux_of[state.slot])
 
     def serialize(self, slot: int) -> SerializedFMUState:
         if not self.alive:
             raise FMUError(f"{self.api.info.label}: this state belongs to a closed FMU instance")
-        return SerializedFMUState(self.token, self.api.serialize(int(self.slots[slot])))
+        data = self.api.serialize(int(self.slots[slot]))
+        if self.aux is not None:
+            extra = self.aux_of[slot]
+            data += extra + struct.pack("<I", len(extra))
+        return SerializedFMUState(self.token, data)
 
     def load(self, state: SerializedFMUState) -> FMUState:
         """Deserialize ``state`` into a slot of this pool."""
         if state.token != self.token:
             raise FMUError(f"{self.api.info.label}: the state is of another FMU (token {state.token})")
+        data = state.data
+        extra = None
+        if self.aux is not None:
+            (n,) = struct.unpack("<I", data[-4:])
+            data, extra = data[:-4 - n], data[-4 - n:-4]
         slot = self.take()
         try:
-            self.api.deserialize(state.data, self.address(slot))
+            self.api.deserialize(data, self.address(slot))
         except BaseException:
             self.free.append(slot)
             raise
+        if extra is not None:
+            self.aux_of[slot] = extra
         return FMUState(self, slot)
 
     def in_use(self) -> int:

@@ -64,6 +64,17 @@ void fmu_tick(const ModelData *m, int clock) {
     if (clock >= 0 && clock < NCLOCKS && !CLOCK_INFO[clock].input) inst->clock_active[clock] = 1;
 }
 
+void fmu_set_interval(const ModelData *m, int clock, double seconds) {
+#ifdef FMU_DYNAMIC_CLOCKS
+    ModelData *d = (ModelData *)m;
+    if (clock < 0 || clock >= NCLOCKS || !CLOCK_INFO[clock].kind) return;
+    d->fmu_interval_[clock] = seconds;
+    d->fmu_interval_changed_[clock] = 1;
+#else
+    (void)m, (void)clock, (void)seconds;
+#endif
+}
+
 void core_log(Instance *inst, int status, const char *category, const char *format, ...) {
     char message[1024];
     va_list args;
@@ -579,7 +590,16 @@ int core_set_clock(Instance *inst, const unsigned *vr, size_t nvr, const bool *v
             return MODEL_ERROR;
         }
     }
-    for (size_t i = 0; i < nvr; ++i) inst->clock_active[VARS[vr[i]].offset] = values[i] ? 1 : 0;
+    for (size_t i = 0; i < nvr; ++i) {
+        int c = (int)VARS[vr[i]].offset;
+        inst->clock_active[c] = values[i] ? 1 : 0;
+#ifdef FMU_DYNAMIC_CLOCKS
+        if (values[i] && CLOCK_INFO[c].kind == 3) { /* a countdown ran out: no next one until the model says */
+            inst->d.fmu_interval_[c] = 0.0;
+            inst->d.fmu_interval_changed_[c] = 0;
+        }
+#endif
+    }
     return MODEL_OK;
 }
 
@@ -620,6 +640,13 @@ int core_get_interval(Instance *inst, const unsigned *vr, size_t nvr, double *in
         if (c < 0) return MODEL_ERROR;
         intervals[i] = CLOCK_INFO[c].interval;
         qualifiers[i] = CLOCK_INFO[c].interval > 0 ? 1 /* fmi3IntervalUnchanged */ : 0 /* NotYetKnown */;
+#ifdef FMU_DYNAMIC_CLOCKS
+        if (CLOCK_INFO[c].kind) { /* given by the model: fmi3IntervalChanged once, then Unchanged */
+            intervals[i] = inst->d.fmu_interval_[c];
+            qualifiers[i] = inst->d.fmu_interval_changed_[c] ? 2 : (intervals[i] > 0 ? 1 : 0);
+            inst->d.fmu_interval_changed_[c] = 0;
+        }
+#endif
     }
     return MODEL_OK;
 }

@@ -38,10 +38,13 @@ typedef struct {
 typedef enum { MODE_INSTANTIATED, MODE_INIT, MODE_STEP, MODE_TERMINATED, MODE_ERROR, MODE_FATAL, MODE_EVENT } Mode;
 
 /* A clock (FMI 3.0): an input clock the master activates (time-based with `interval` and `shift`
- * seconds, or triggered when `interval` is 0), or an output clock the model ticks (fmu_tick). */
+ * seconds, or triggered when `interval` is 0), or an output clock the model ticks (fmu_tick).
+ * `kind` 1 tunable, 2 changing, 3 countdown: an input clock whose interval the model gives
+ * (fmu_set_interval; kept in ModelData), 0 otherwise. */
 typedef struct {
     int input;
     double interval, shift;
+    int kind;
 } ClockInfo;
 
 struct Instance;

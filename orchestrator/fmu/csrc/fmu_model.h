@@ -50,6 +50,12 @@ int model_clock(ModelData *m, int clock);
 /* Tick an output clock (in model_clock). */
 void fmu_tick(const ModelData *m, int clock);
 
+/* The interval of a tunable, changing or countdown input clock (fmu.yaml `variability:`), in seconds,
+ * counted from now: in model_init (the first tick), and in model_clock (tunable: a new period from
+ * this event on; changing: the time to the next tick, given at each tick; countdown: start a
+ * countdown, the clock ticks once when it runs out). The master reads it after the event. */
+void fmu_set_interval(const ModelData *m, int clock, double seconds);
+
 /* Log a message through the master's logger (printf format). */
 void fmu_log(const ModelData *m, int status, const char *format, ...)
 #if defined(__GNUC__)

@@ -1,0 +1,113 @@
+"""FMI 3.0 input clocks whose interval the FMU gives while it runs (fmus/conformance/aperiodic, built
+here): a tunable clock (periodic; a new period taken at an event counts from there), a changing clock
+(its next interval read at each tick), a countdown clock (ticks once when the interval it was given
+runs out). They tick where the FMU says, and their schedule is state: rollback, fork and isolation
+replay them bit for bit. An interval that falls between two steps is refused naming clock and time."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dynabrain.orchestrator.fmu import FMUCallError, FMUError, load_fmu_info, make_fmu_module
+from dynabrain.orchestrator.fmu.build import build_fmu, package_fmu
+from dynabrain.orchestrator.kernel.world import World
+
+ROOT = Path(__file__).resolve().parents[1]
+CLOCKS = ("beat", "chirp", "alarm")
+
+pytestmark = pytest.mark.usefixtures("fmu_cache")
+
+
+def world(isolate: bool = False, period: str = "1ms", **params) -> World:
+    w = World(step="1ms")
+    w.add_module(make_fmu_module("a", "fmus/conformance/aperiodic", base_dir=str(ROOT), params=params, targets=[],
+                                 isolate=isolate), period=period)
+    return w
+
+
+def run(w: World, ticks: int, retune: dict[int, float] | None = None) -> tuple[dict[str, list[int]], list]:
+    """Tick ``ticks`` times (setting ``period`` before the ticks in ``retune``); each clock's ticks (ms,
+    from its clocked outputs) and the bus after every tick."""
+    seen: dict[str, list[int]] = {c: [] for c in CLOCKS}
+    count = {c: w.get(f"a.{c}s") for c in CLOCKS}
+    rows = []
+    for _ in range(ticks):
+        if retune and w.tick_count in retune:
+            w.set("a.period", retune[w.tick_count])
+        w.tick()
+        for c in CLOCKS:
+            if w.get(f"a.{c}s") != count[c]:
+                count[c] = w.get(f"a.{c}s")
+                seen[c].append(round(w.get(f"a.t_{c}") * 1000))
+        rows.append(w.snapshot().bus.copy())
+    return seen, rows
+
+
+def test_tunable_changing_and_countdown_clocks_tick_where_the_fmu_says():
+    info = load_fmu_info("fmus/conformance/aperiodic", base_dir=str(ROOT))
+    assert [(c.name, c.variability, c.dynamic, c.on_bus) for c in info.clocks] == [
+        ("beat", "tunable", True, False), ("chirp", "changing", True, False), ("alarm", "countdown", True, False)]
+    with world() as w:
+        assert (w.get("a.beats"), w.get("a.chirps"), w.get("a.alarms")) == (1, 0, 0)  # beat ticks at the start
+        seen, _ = run(w, 150, retune={50: 0.03})
+    assert seen == {"beat": [20, 40, 60, 90, 120, 150],  # 30 ms from the beat at 60 ms that took the new period
+                    "chirp": [10, 30, 60, 70, 90, 120, 130, 150],  # 10, 20, 30, 10, 20, 30, ... ms apart
+                    "alarm": [65, 125]}  # 5 ms after every third chirp (60, 120 ms)
+
+
+def test_their_schedule_rolls_back_forks_and_runs_isolated_bit_for_bit():
+    retune = {50: 0.03}
+    results = []
+    for isolate in (False, True):
+        with world(isolate) as w:
+            _, first = run(w, 62, retune)  # at 62 ms: the alarm counts down to 65, the new period is taken
+            _, rest = run(w, 80)
+            w.backtick(80)
+            assert np.array_equal(w.snapshot().bus, first[-1])
+            seen, again = run(w, 80)
+            assert all(np.array_equal(a, b) for a, b in zip(rest, again, strict=True))
+            assert seen["alarm"] == [65, 125] and seen["beat"] == [90, 120]  # not the ticks of before the rollback
+            w.backtick(30)
+            fork = w.fork()
+            _, forked = run(fork, 30)
+            _, own = run(w, 30)
+            assert all(np.array_equal(a, b) for a, b in zip(forked, own, strict=True))
+            fork.close()
+            results.append(first + rest)
+    assert all(np.array_equal(a, b) for a, b in zip(*results, strict=True))
+
+
+def test_an_interval_between_two_steps_is_refused_naming_the_clock_and_the_time():
+    with world(period="2ms") as w:  # steps of 2 ms: 25 ms (the tunable period) falls between two
+        w.tick(20)
+        w.set("a.period", 0.025)
+        with pytest.raises(FMUCallError, match=r"module 'a': fmi3GetIntervalDecimal\(\) at tick 38 failed: .*"
+                                               r"clock 'beat' \(tunable\) was given the interval 0.025 s at "
+                                               r"t=0.04 s, not a positive whole number of the module's periods "
+                                               r"\(0.002 s\)"):
+            w.tick(20)
+        assert w.tick_count == 38  # rolled back to the start of the module's step that reached the beat at 40 ms
+    with World(step="1ms") as w, pytest.raises(FMUCallError, match=r"clock 'chirp' \(changing\) was given the "
+                                                                   r"interval 0.01 s at t=0 s, not a whole number "
+                                                                   r"of the module's periods \(0.004 s\)"):
+        w.add_module(make_fmu_module("a", "fmus/conformance/aperiodic", base_dir=str(ROOT), params={}, targets=[]),
+                     period="4ms")
+
+
+def test_a_clock_that_gets_no_interval_from_the_fmu_is_refused_naming_it(tmp_path):
+    """A tunable clock whose FMU says fmi3IntervalNotYetKnown after initialization has no period."""
+    built = build_fmu(ROOT / "fmus" / "conformance" / "sampled_pi", 3)
+    with zipfile.ZipFile(built) as zf:
+        xml = zf.read("modelDescription.xml").decode()
+        lib = next(n for n in zf.namelist() if n.startswith("binaries/"))
+        (tmp_path / "sampled_pi.so").write_bytes(zf.read(lib))
+    xml = xml.replace('intervalVariability="triggered"', 'intervalVariability="tunable"')
+    bad = package_fmu(tmp_path / "bad.fmu", xml, {str(Path(lib).parent): tmp_path / "sampled_pi.so"})
+    with World(step="1ms") as w, pytest.raises(FMUError, match=r"bad.fmu .*clock 'reset' \(tunable\) has no interval "
+                                                               r"after initialization \(fmi3GetIntervalDecimal: "
+                                                               r"fmi3IntervalNotYetKnown\)"):
+        w.add_module(make_fmu_module("pi", str(bad), base_dir=".", params={}, targets=[]))
