@@ -199,3 +199,13 @@ def test_the_subprotocols_the_sdk_accepts():
     finally:
         view.close()
     assert accepted == list(SUBPROTOCOLS) and refused == [("foxglove.websocket.v1", 400)]
+
+
+def test_run_live_on_a_port_in_use_stops_before_anything_is_recorded(tmp_path):
+    log = tmp_path / "run.mcap"
+    with busy_port() as sock:
+        port = sock.getsockname()[1]
+        result = CliRunner().invoke(app, ["run", "two_cubes", "--live", "--live-port", str(port), "--log", str(log),
+                                          "--no-realtime", "-q"])
+    assert isinstance(result.exception, DynabrainError), result.output  # `dynabrain` prints it and exits 2
+    assert f"--live-port {port}" in str(result.exception) and not log.exists()
