@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 SCENARIO ?= scenarios/two_cubes.yaml
 
-.PHONY: run test lint bench setup system-deps
+.PHONY: run test lint bench bench-peers setup system-deps
 
 # Offscreen rendering for the camera module (EGL with Mesa). Installed when missing and we are root
 # (as in CI); otherwise a note, and the camera says at load that no renderer works.
@@ -35,3 +35,15 @@ test: setup
 
 bench: setup
 	for b in $$(ls bench/*.py | grep -v timing.py); do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+# The FMU masters bench/fmu_chain.py compares with (ecos and libcosim, from PyPI), and the TBB runtime
+# ecos's library needs (installed when missing and we are root; otherwise a note). Not needed by tests.
+PEERS := ecospy==0.7.2 libcosimpy==0.0.6
+bench-peers: setup
+	@if ldconfig -p | grep -q 'libtbb.so.12 '; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libtbb12 >/dev/null) \
+	  || echo "note: could not install libtbb12; ecos will not run"; \
+	else echo "note: libtbb12 is not installed; ecos will not run"; fi
+	$(BIN)/pip install --quiet $(PEERS)
+	$(BIN)/python bench/fmu_chain.py

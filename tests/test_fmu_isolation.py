@@ -76,8 +76,10 @@ def module(ref, name: str, isolate: bool = True, **params):
     return make_fmu_module(name, str(ref), base_dir=".", params=params, targets=[], isolate=isolate)
 
 
-@pytest.mark.parametrize("version", [2, 3])
-def test_isolated_fmu_steps_bit_for_bit_like_one_in_process(version):
+@pytest.mark.parametrize(("version", "room"), [(2, None), (3, None), (2, 16)], ids=["fmi2", "fmi3", "state-by-pipe"])
+def test_isolated_fmu_steps_bit_for_bit_like_one_in_process(version, room, monkeypatch):
+    if room is not None:  # a state longer than the step file holds crosses the pipe (`worker.last_state`)
+        monkeypatch.setattr("dynabrain.orchestrator.fmu.isolate.STATE_BYTES", room)
     worlds = []
     for isolate in (False, True):
         w = World(step="1ms")

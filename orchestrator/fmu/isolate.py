@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import mmap
+import pickle
 import shutil
 import signal
 import subprocess
@@ -41,9 +42,11 @@ from .errors import FMUCrashError, FMUError, FMUTimeoutError
 from .info import FmuInfo
 from .module import FMUModuleBase
 from .states import SerializedFMUState
-from .worker import TRACE_SIZE
+from .worker import DONE, IO_HEADER, STEP, TRACE_SIZE
 
 _log = logging.getLogger("dynabrain.fmu")
+STATE_BYTES = 1 << 16
+"""Room for the serialized state in the step file (`worker`); a longer state crosses the pipe."""
 STOP_TIMEOUT_S = 5.0
 CALL_TIMEOUT_S = 30.0
 """How long one call of an isolated FMU may take by default (``call_timeout`` in a scenario)."""
@@ -112,11 +115,29 @@ class _Child:
         self.proc.wait()
         self.cleanup()
 
+    def attach(self, n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Make the step file (`worker`'s docstring): (its header, inputs and outputs as arrays, where
+        the state's bytes start); the child maps it with the request ``attach``."""
+        at = 8 * (IO_HEADER + n_in + n_out)
+        path = self.dir / "io"
+        path.write_bytes(b"\0" * (at + STATE_BYTES))
+        with open(path, "r+b") as fh:
+            self.io = mmap.mmap(fh.fileno(), at + STATE_BYTES)
+        head = np.ndarray(IO_HEADER, dtype=np.int64, buffer=self.io)
+        head[3] = STATE_BYTES
+        ins = np.ndarray(n_in, dtype=np.float64, buffer=self.io, offset=8 * IO_HEADER)
+        outs = np.ndarray(n_out, dtype=np.float64, buffer=self.io, offset=8 * (IO_HEADER + n_in))
+        return head, ins, outs, at
+
     def cleanup(self) -> None:
         for closer in (getattr(self, "conn", None), self.trace, self.log):
             with contextlib.suppress(Exception):
                 if closer is not None:
                     closer.close()
+        io = getattr(self, "io", None)
+        if io is not None:
+            with contextlib.suppress(BufferError):  # arrays on it still alive: the mapping goes with them
+                io.close()
         shutil.rmtree(self.dir, ignore_errors=True)  # the log, the trace and the extracted FMU
 
 
@@ -150,8 +171,11 @@ class IsolatedFMUModule(FMUModuleBase):
         """Start a worker and load the FMU in it; on any failure no process is left behind."""
         self._child = _Child(self.info.label)
         try:
-            self._request("open", self.info, self.name, self.CAPABILITIES.can_rollback, str(self._child.dir / "fmu"),
-                          self.start_time, self._period_ns, timeout=max(self.call_timeout, START_TIMEOUT_S))
+            n_in, n_out = self._request("open", self.info, self.name, self.CAPABILITIES.can_rollback,
+                                        str(self._child.dir / "fmu"), self.start_time, self._period_ns,
+                                        timeout=max(self.call_timeout, START_TIMEOUT_S))
+            self._io = self._child.attach(n_in, n_out)
+            self._request("attach", str(self._child.dir / "io"), len(self._child.io))
         except BaseException:
             child, self._child = self._child, None
             if child is not None:
@@ -172,6 +196,34 @@ class IsolatedFMUModule(FMUModuleBase):
             raise self._crashed(op, exc) from None
         if reply[0] == "ok":
             return reply[1]
+        self._refused(reply)
+
+    def _step_request(self, t_ns: int, dt_ns: int) -> None:
+        """A step through the step file (`worker`): time and inputs in, outputs and state out."""
+        child = self._child
+        head, ins, outs, state_at = self._io
+        head[0], head[1] = t_ns, dt_ns
+        for view, where in self._gather:
+            self._in_values[where] = view.reshape(-1)
+        ins[:] = self._in_values
+        try:
+            child.conn.send_bytes(STEP)
+            if not child.conn.poll(self.call_timeout):
+                raise self._hung("step", self.call_timeout)
+            reply = child.conn.recv_bytes()
+        except (EOFError, OSError) as exc:
+            raise self._crashed("step", exc) from None
+        if reply != DONE:
+            self._refused(pickle.loads(reply))  # our child's error reply (a pipe of our own)
+        self._write_outputs(outs)
+        n = int(head[2])
+        if n >= 0:
+            self._state = SerializedFMUState(self.info.token, child.io[state_at:state_at + n])
+        else:
+            self._state = None if n == -2 else self._as_state(self._request("last_state"))
+
+    def _refused(self, reply: tuple) -> None:
+        """Raise the error a child's reply carries."""
         _, kind, call, message, lost, port = reply
         if lost:  # fatal, or failed without a way back: a new process takes over from the last good state
             self._drop_child()
@@ -278,9 +330,7 @@ class IsolatedFMUModule(FMUModuleBase):
     def step(self, t_ns: int, dt_ns: int) -> None:
         if self._child is None:
             self._revive(t_ns)
-        outputs, state = self._request("step", t_ns, dt_ns, self._inputs_now())
-        self._write_outputs(outputs)
-        self._state = self._as_state(state)
+        self._step_request(t_ns, dt_ns)
 
     def _as_state(self, data: bytes | None) -> SerializedFMUState | None:
         return None if data is None else SerializedFMUState(self.info.token, data)
