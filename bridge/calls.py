@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from dynabrain.orchestrator.kernel.bodies import BodySpecError
+from dynabrain.orchestrator.kernel.core import BodySpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.observers import WorldView
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
@@ -34,6 +36,7 @@ from dynabrain.orchestrator.kernel.units import parse_duration_ns
 from dynabrain.orchestrator.kernel.world import World, as_connection
 from dynabrain.orchestrator.scenario.limits import MAX_MAGNITUDE, check_magnitudes
 from dynabrain.orchestrator.scenario.make import ModuleNotAllowedError, make_module
+from dynabrain.orchestrator.scenario.scene import parse_pose
 
 from . import frames
 from . import protocol as p
@@ -193,7 +196,28 @@ class WorldService:
         return list(self.world.core.selection) if self.world.core is not None else []
 
     def do_make_joint(self, a: p.MakeJointArgs) -> str:
-        return self.world.make_joint(a.a, a.b, a.name)
+        return self.world.make_joint(a.a, a.b, a.name, kind=a.kind, axis=a.axis, anchor=a.anchor)
+
+    # -- bodies at run time ---------------------------------------------------------------------------------
+    def do_add_body(self, a: p.AddBodyArgs) -> dict[str, Any]:
+        spec = make_body_spec(a.model_dump(exclude_none=True))
+        with self.world.lock():
+            before = set(self.world.signals)
+            name = self.world.add_body(spec)
+            return {"body": name, "signals": [s for s in self.world.signals if s not in before]}
+
+    def do_remove_body(self, a: p.NameArgs) -> dict[str, Any]:
+        with self.world.lock():
+            n = len(self.world.connections)
+            self.world.remove_body(a.name)
+            return {"disconnected": n - len(self.world.connections)}
+
+    def do_set_material(self, a: p.MaterialArgs) -> dict[str, Any]:
+        given = {k: getattr(a, k) for k in ("friction", "restitution") if k in a.model_fields_set}
+        with self.world.lock():
+            self.world.set_material(a.body, **given)
+            m = self.world.core.material(a.body)
+            return {"friction": m.friction, "restitution": m.restitution}
 
     def do_remove_joint(self, a: p.NameArgs) -> None:
         self.world.remove_joint(a.name)
@@ -490,3 +514,17 @@ def _period(value: Any) -> int | None:
     if isinstance(value, bool):
         raise DynabrainError(f"period must be a duration (`10ms`) or seconds, got {value!r}")
     return parse_duration_ns(value)
+
+
+def make_body_spec(fields: dict[str, Any]) -> BodySpec:
+    """The `BodySpec` of an ``add_body`` call's fields (units and colour names checked: a bad value is
+    refused naming the call, the body and the field)."""
+    try:
+        spec = BodySpec(**fields)
+    except BodySpecError as exc:
+        raise BodySpecError(exc.body, exc.field, exc.detail, call="add_body") from None
+    try:  # a pose within the scenario's limits (as `place`)
+        parse_pose({"pos": list(spec.pos), "quat": list(spec.quat)})
+    except DynabrainError as exc:
+        raise ValueRefusedError(f"add_body(): body {spec.name!r}, field pos/quat: {exc}") from None
+    return spec

@@ -298,8 +298,25 @@ class BrainClient:
     def make(self, objects: Sequence[str] | str) -> list[str]:
         return self.call("make", objects=[objects] if isinstance(objects, str) else list(objects))
 
-    def make_joint(self, a: str, b: str, name: str | None = None) -> str:
-        return self.call("make_joint", a=a, b=b, name=name)
+    def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
+                   axis: Sequence[float | str] | None = None, anchor: Sequence[float | str] | None = None) -> str:
+        """Join two bodies as they stand: ``weld``, ``hinge`` (about ``axis`` through ``anchor``), ``slider``
+        (along ``axis``) or ``ball`` (about ``anchor``); world frame. Returns the joint's name."""
+        extra = {k: list(v) for k, v in (("axis", axis), ("anchor", anchor)) if v is not None}
+        return self.call("make_joint", a=a, b=b, name=name, **({"kind": kind} if kind != "weld" else {}), **extra)
+
+    def add_body(self, name: str, shape: str, **fields: Any) -> dict[str, Any]:
+        """Add a body to the running world (`World.add_body`'s fields: ``size``, ``pos``, ``quat``, ``mass``,
+        ``color``, ``friction``, ``restitution``, ``mesh`` (``{vertices, faces}``), ``scale``, ``joint``),
+        numbers in SI or strings with units. Returns ``{body, signals}``."""
+        return self.call("add_body", name=name, shape=shape, **{k: p.plain(v) for k, v in fields.items()})
+
+    def remove_body(self, name: str) -> dict[str, Any]:
+        return self.call("remove_body", name=name)
+
+    def set_material(self, body: str, **coefficients: float | None) -> dict[str, Any]:
+        """A body's own ``friction`` and/or ``restitution`` (None: the core's again); returns both, now."""
+        return self.call("set_material", body=body, **coefficients)
 
     def remove_joint(self, name: str) -> None:
         self.call("remove_joint", name=name)

@@ -86,6 +86,10 @@ class _Strict(BaseModel):
 Name = Annotated[str, Field(min_length=1, max_length=256)]
 Names = Annotated[list[Name], Field(min_length=1, max_length=MAX_NAMES)]
 Number = float | int
+Quantity = Number | Annotated[str, Field(min_length=1, max_length=64)]
+"""A number in SI units, or a string with its unit (``"100mm"``, ``"50g"``)."""
+MAX_MESH_VERTICES = 20_000
+"""Most vertices of a mesh body (as `kernel.meshes.MAX_VERTICES`; the command's bytes limit comes first)."""
 Value = Number | bool | str | list[Any]
 """A value to set: a number, a boolean, a string, or (nested) lists of numbers."""
 
@@ -130,6 +134,52 @@ class MakeJointArgs(_Strict):
     a: Name
     b: Name
     name: Name | None = None
+    kind: Name = "weld"
+    """``weld`` (rigid), ``hinge``, ``slider`` or ``ball`` (the core refuses another, naming the kinds)."""
+    axis: Annotated[list[Quantity], Field(min_length=3, max_length=3)] | None = None
+    """World frame; a hinge turns about it, a slider slides along it (default z)."""
+    anchor: Annotated[list[Quantity], Field(min_length=3, max_length=3)] | None = None
+    """World frame, lengths in m or with a unit (``"120mm"``); default: b's origin."""
+
+
+Point = Annotated[list[Number], Field(min_length=3, max_length=3)]
+Triangle = Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=3, max_length=3)]
+
+
+class MeshData(_Strict):
+    """A mesh written out: vertices in the body frame (m, before ``scale``) and triangles (optional: the
+    convex hull is what both cores simulate). A file on the server is never read."""
+
+    vertices: Annotated[list[Point], Field(min_length=4, max_length=MAX_MESH_VERTICES)]
+    faces: Annotated[list[Triangle], Field(max_length=2 * MAX_MESH_VERTICES)] = []
+
+
+class AddBodyArgs(_Strict):
+    """A body to add while the world runs: `BodySpec`'s fields, with the units and colour names of a
+    scenario file (``"100mm"``, ``"50g"``, ``"blue"``), checked by the world."""
+
+    name: Name
+    shape: Name
+    """``box``, ``sphere``, ``capsule``, ``cylinder`` or ``mesh``."""
+    size: Annotated[list[Quantity], Field(max_length=3)] = []
+    pos: Annotated[list[Quantity], Field(min_length=3, max_length=3)] = [0.0, 0.0, 0.0]
+    quat: Annotated[list[Number], Field(min_length=4, max_length=4)] | None = None
+    mass: Quantity | None = None
+    color: Name | Annotated[list[Number], Field(min_length=3, max_length=4)] | None = None
+    friction: Annotated[float, Field(ge=0)] | Annotated[int, Field(ge=0)] | None = None
+    restitution: Annotated[float, Field(ge=0, le=1)] | Annotated[int, Field(ge=0, le=1)] | None = None
+    mesh: MeshData | None = None
+    scale: Number | Annotated[list[Number], Field(min_length=3, max_length=3)] | None = None
+    joint: Literal["free", "fixed"] | None = None
+    """``fixed``: held where it is put; default free."""
+
+
+class MaterialArgs(_Strict):
+    """A body's own coefficients; a field left out keeps its value, null gives back the core's."""
+
+    body: Name
+    friction: Annotated[float, Field(ge=0)] | Annotated[int, Field(ge=0)] | None = None
+    restitution: Annotated[float, Field(ge=0, le=1)] | Annotated[int, Field(ge=0, le=1)] | None = None
 
 
 class NameArgs(_Strict):
@@ -273,9 +323,18 @@ TABLE: dict[str, Call] = {
     "stop": Call(NoArgs, "", "`{running: false, error, stopped}`: ends the loop and a `tick` running on this world "
                  "(`stopped`: `{brain, ticks_done, ticks_asked}` of that tick, or null)", server=True),
     "make": Call(ObjectsArgs, "`objects` (names or glob patterns)", "the selection"),
-    "make_joint": Call(MakeJointArgs, "`a`, `b`, `name` (optional)", "the joint's name"),
+    "make_joint": Call(MakeJointArgs, "`a`, `b`, `name` (optional), `kind` (`weld` (default), `hinge`, `slider`, "
+                       "`ball`), `axis` [3] and `anchor` [3] (world frame, optional)", "the joint's name"),
     "remove_joint": Call(NameArgs, "`name`", ""),
     "no_collision": Call(ObjectsArgs, "`objects`", ""),
+    "add_body": Call(AddBodyArgs, "`name`, `shape` (`box`, `sphere`, `capsule`, `cylinder`, `mesh`), `size`, `pos`, "
+                     "`quat`, `mass`, `color` (a name or RGB(A)), `friction`, `restitution`, `mesh` (`{vertices, "
+                     "faces}`), `scale`, `joint` (`free` or `fixed`); numbers in SI or strings with units",
+                     "`{body, signals}`: its name and its new signals", slow=True),
+    "remove_body": Call(NameArgs, "`name` (an object)", "`{disconnected}`: the connections to its ports, dropped",
+                        slow=True),
+    "set_material": Call(MaterialArgs, "`body`, `friction`, `restitution` (each optional; null: the core's)",
+                         "`{friction, restitution}`: the body's own, now"),
     "place": Call(PlaceArgs, "`body`, `pos` [3], `quat` [4] (optional)", ""),
     "set": Call(SetArgs, "`name` (`module.param` or an unconnected input `module.port`), `value` (lists of numbers "
                 "are arrays; a list holding objects or strings, such as a servo's `sequence` of `{pose, duration}` "

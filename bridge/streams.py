@@ -30,7 +30,7 @@ class EventSink:
         self._pub = session.declare_publisher(p.key(world, "events"), encoding=JSON)
         self.tick_of: Callable[[], int] = lambda: 0
 
-    def emit(self, kind: str, tick: int | None = None, source: str = "bridge", **detail: Any) -> None:
+    def emit(self, kind: str, /, tick: int | None = None, source: str = "bridge", **detail: Any) -> None:
         msg = {"tick": self.tick_of() if tick is None else tick, "kind": kind, "detail": p.plain(detail),
                "source": source}
         try:

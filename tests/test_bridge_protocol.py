@@ -83,6 +83,9 @@ EXAMPLES = {
     "close": {}, "status": {}, "view": {"signals": ["core.*.q"]}, "read": {"view": 1}, "drop_view": {"view": 1},
     "acquire": {"lease": 5}, "release": {}, "motion": {"robot": "arm", "targets": {"yaw": 0.1}, "route": "both"},
     "robot_enable": {"robot": "arm"}, "robot_stop": {"robot": "arm"}, "robot_status": {"robot": "arm"},
+    "add_body": {"name": "lid", "shape": "box", "size": ["100mm", 0.1, 0.02], "pos": [0, 0, "0.2m"], "mass": "50g",
+                 "color": "blue", "friction": 0.3},
+    "remove_body": {"name": "lid"}, "set_material": {"body": "lid", "restitution": 0.4},
 }
 
 

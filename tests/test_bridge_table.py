@@ -33,7 +33,7 @@ def test_every_call_has_one_handler_on_its_side_of_the_table():
         world.close()
     assert {name: call.model for name, call in p.TABLE.items()} == p.CALLS
     assert {"status", "get", "read", "view", "drop_view", "robot_status"} == p.READ_ONLY
-    assert {"add_module", "fork", "close", "batch"} == p.SLOW
+    assert {"add_module", "add_body", "remove_body", "fork", "close", "batch"} == p.SLOW
 
 
 class _Extra(WorldService):
