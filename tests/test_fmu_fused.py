@@ -4,6 +4,7 @@ the same world on the plain tick, which steps every module on its own."""
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +51,7 @@ def chain(fmus: list[tuple[str, Path]], *, compiled: bool, **params) -> World:
     world = World("chain", step="2ms", history=200, compiled=compiled)
     for name, ref in fmus:
         world.add_module(make_fmu_module(name, str(ref), base_dir=".", params=params, targets=[]))
-    for (a, _), (b, _) in zip(fmus, fmus[1:], strict=False):
+    for (a, _), (b, _) in itertools.pairwise(fmus):
         world.connect(f"{a}.y", f"{b}.u")
     return world
 
