@@ -111,3 +111,22 @@ def test_a_clock_that_gets_no_interval_from_the_fmu_is_refused_naming_it(tmp_pat
                                                                r"after initialization \(fmi3GetIntervalDecimal: "
                                                                r"fmi3IntervalNotYetKnown\)"):
         w.add_module(make_fmu_module("pi", str(bad), base_dir=".", params={}, targets=[]))
+
+
+def test_a_clock_port_wired_to_a_continuous_output_is_refused_at_build_naming_both_ends(tmp_path):
+    """A clock input (a triggered input clock: a port of unit clock) takes only a clock output; a clocked
+    *variable* fed by a continuous output is sampled at its clock's ticks (FMI 3.0's sampled data)."""
+    from dynabrain.orchestrator.kernel.errors import ScenarioError
+    from dynabrain.orchestrator.scenario.model import load_scenario
+
+    path = tmp_path / "clk.yaml"
+    path.write_text(f"name: clk\nworld: {{step: 1ms, duration: 10ms, core: null}}\nmodules:\n"
+                    f"  - {{name: plant, fmu: '{ROOT / 'fmus/conformance/plant'}@fmi3'}}\n"
+                    f"  - {{name: pi, fmu: '{ROOT / 'fmus/conformance/sampled_pi'}'}}\n"
+                    "connect:\n  - [plant.y, pi.reset]\n  - [pi.alarm, plant.u]\n")
+    with pytest.raises(ScenarioError) as bad:
+        load_scenario(path).build()
+    text = str(bad.value)
+    assert "clk.yaml:7 [connect[0]]: connection plant.y -> pi.reset: unit mismatch, plant.y is in '1', pi.reset " \
+           "in 'clock'" in text
+    assert "clk.yaml:8 [connect[1]]: connection pi.alarm -> plant.u: unit mismatch, pi.alarm is in 'clock'" in text
