@@ -17,7 +17,7 @@ from dynabrain.modules.exudyn.core import ExudynCore
 from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.orchestrator import load_world
 from dynabrain.orchestrator.kernel.bodies import BodySpecError
-from dynabrain.orchestrator.kernel.core import BodySpec, SceneSpec
+from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec, SceneSpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError, ScenarioError
 from dynabrain.orchestrator.kernel.meshes import Mesh, convex_hull, mass_properties, read_mesh
 from dynabrain.orchestrator.kernel.world import World
@@ -175,5 +175,24 @@ def test_a_mesh_spec_keeps_numbers_not_the_file(tmp_path):
     assert isinstance(spec.mesh, Mesh) and len(spec.mesh.vertices) == 4 and len(spec.mesh.faces) == 4
     assert spec.scale == (1.0, 1.0, 1.0) and spec.size == ()
     assert BodySpec("t", "mesh", mesh=spec.mesh.plain()) == spec
+    world = world_of("mujoco")
     with pytest.raises(DynabrainError, match="add_body"):
-        world_of("mujoco").add_body(name="t", shape="mesh", mesh=str(obj))
+        world.add_body(name="t", shape="mesh", mesh=str(obj))
+    world.close()
+
+
+@ENGINES
+def test_a_mesh_bar_on_a_hinge_swings_as_the_box_it_is(engine):
+    """Mass, centre of mass (away from the body's origin, at the hinge) and inertia come from the hull."""
+    bar = [[x, y, z] for x in (0, 0.3) for y in (-0.02, 0.02) for z in (-0.02, 0.02)]
+    hinge = {"kind": "hinge", "name": "h", "axis": (0.0, 1.0, 0.0)}
+    arms = [BodySpec("arm", "mesh", mesh={"vertices": bar}, pos=(0, 0, 1), mass=0.5, joint=JointSpec(**hinge)),
+            BodySpec("arm", "box", (0.3, 0.04, 0.04), pos=(0.15, 0, 1), mass=0.5,
+                     joint=JointSpec(**hinge, anchor=(-0.15, 0.0, 0.0)))]
+    swings = []
+    for arm in arms:
+        world = World("swing", step="2ms", history=10, core=CORES[engine]("core", SceneSpec(bodies=(arm,))))
+        world.tick(100)
+        swings.append(world.get("core.h.q"))
+        world.close()
+    assert swings[0] > 0.5 and swings[0] == pytest.approx(swings[1], abs=1e-6), swings
