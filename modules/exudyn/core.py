@@ -5,8 +5,9 @@ Choices (see also `exudyn.topology` and `exudyn.plan` for bodies, joints and wel
 and `exudyn.outputs` for the Exudyn system, `exudyn.contact` and `exudyn.calibrate` for contacts,
 `exudyn.tree` for joint chains, `exudyn.cable` for flexible cables):
 
-- a scene of primitives only; a model file (MJCF), a joint chain under a free body and unknown
-  shapes or joints are refused when the core is made, naming the feature and the core;
+- a scene of primitives only (and meshes, as their convex hull: triangles and corner spheres in
+  Exudyn's general contact, `exudyn.geometry`); a model file (MJCF), a joint chain under a free body
+  and unknown shapes or joints are refused when the core is made, naming the feature and the core;
 - hinges and slides are exact: chains hang from the world or a fixed body as Exudyn kinematic trees
   in minimal coordinates (their links do not touch one another; ``link_contacts: false`` drops
   their contact geometry altogether, three to four times cheaper for chains that touch nothing);
