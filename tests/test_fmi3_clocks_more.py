@@ -130,3 +130,48 @@ def test_a_clock_port_wired_to_a_continuous_output_is_refused_at_build_naming_bo
     assert "clk.yaml:7 [connect[0]]: connection plant.y -> pi.reset: unit mismatch, plant.y is in '1', pi.reset " \
            "in 'clock'" in text
     assert "clk.yaml:8 [connect[1]]: connection pi.alarm -> plant.u: unit mismatch, pi.alarm is in 'clock'" in text
+
+
+# -- early return (fmus/conformance/crossing) ----------------------------------------------------------
+def crossing(isolate: bool = False) -> World:
+    w = World(step="10ms")
+    w.add_module(make_fmu_module("c", "fmus/conformance/crossing", base_dir=str(ROOT), params={}, targets=[],
+                                 isolate=isolate))
+    return w
+
+
+def rows_of(w: World, ticks: int) -> list[tuple[float, ...]]:
+    out = []
+    for _ in range(ticks):
+        w.tick()
+        out.append(tuple(float(w.get(f"c.{k}")) for k in ("x", "pieces", "since", "turns", "t_turn", "turn")))
+    return out
+
+
+def test_an_fmu_that_returns_early_has_its_event_handled_there_and_steps_on_from_it():
+    """x rises at 1/s to 25 mm and falls back: the turn at 25 ms falls inside the step from 20 ms, which
+    ends there (an early return); the master handles the event at 25 ms (the output clock and its
+    clocked outputs) and steps on from 25 ms to 30 ms. The turn at 50 ms is a step's end: one piece."""
+    with crossing() as w:
+        got = rows_of(w, 8)
+    assert [r[1] for r in got] == [1, 2, 4, 5, 6, 7, 8, 10]  # DoStep calls: two for the steps with a turn inside
+    assert [round(r[2], 12) for r in got] == [0.0, 0.01, 0.025, 0.03, 0.04, 0.05, 0.06, 0.075]  # the last began
+    assert [r[3] for r in got] == [0, 0, 1, 1, 2, 2, 2, 3] and [r[5] for r in got] == [0, 0, 1, 0, 1, 0, 0, 1]
+    assert [round(r[4], 12) for r in got[2:]] == [0.025, 0.025, 0.05, 0.05, 0.05, 0.075]  # each turn's own time
+    assert [round(r[0], 12) for r in got] == [0.01, 0.02, 0.02, 0.01, 0.0, 0.01, 0.02, 0.02]  # the triangle
+
+
+def test_early_returns_roll_back_fork_and_run_isolated_bit_for_bit():
+    results = []
+    for isolate in (False, True):
+        with crossing(isolate) as w:
+            first = rows_of(w, 12)
+            bus = w.snapshot().bus.copy()
+            w.backtick(9)  # back over three turns
+            again = rows_of(w, 9)
+            assert again == first[3:] and np.array_equal(w.snapshot().bus, bus)
+            fork = w.fork()
+            assert rows_of(fork, 7) == rows_of(w, 7)
+            fork.close()
+            results.append(first)
+    assert results[0] == results[1]

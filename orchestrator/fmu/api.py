@@ -362,8 +362,9 @@ class Fmi3Api(FmuApi):
     def instantiate(self, logging_on: bool = False) -> None:
         resources = os.path.join(self.unzip_dir, "resources") + os.sep
         self.enter("fmi3InstantiateCoSimulation")
+        event_mode = bool(self.info.clocks)  # with event mode the session also handles an early return
         ptr = self.c["instantiate"](self.name.encode(), self.info.token.encode(), resources.encode(), False,
-                                    logging_on, bool(self.info.clocks), False, None, 0, self.sink.key,
+                                    logging_on, event_mode, event_mode, None, 0, self.sink.key,
                                     ctypes.cast(_LOGGER3, c_void_p).value, None)
         if not ptr:
             lines = self.sink.take()

@@ -156,8 +156,8 @@ class Events:
         ticked = list(active)
         if len(self.out_vrs):
             for (vr, at), on in zip(self.out_clocks, api.get_clocks(self.out_vrs), strict=True):
-                s.out_values[at] = 1.0 if on else 0.0
-                if on:
+                if on:  # (0 from the step's start: `before_step`; an early return's event may have ticked it)
+                    s.out_values[at] = 1.0
                     ticked.append(vr)
         for vr in ticked:
             for g in self.clocked_out.get(vr, ()):
@@ -213,6 +213,11 @@ class Schedule:
         intervals, qualifiers = events.s.api.get_intervals(self.vrs)
         for i, (c, seconds, q) in enumerate(zip(self.clocks, intervals, qualifiers, strict=True)):
             ticked = c.vr in active
+            if q == 2 and (t_ns - events.origin_ns) % events.period_ns:
+                raise FMUCallError(events.s.name, "fmi3GetIntervalDecimal", None,
+                                   f"{events.s.info.label}: clock {c.name!r} ({c.variability}) was given an interval "
+                                   f"at an event between two steps (t={t_ns / 1e9 + events.s.start_time:g} s, an "
+                                   "early return): its ticks would fall between two steps")
             if q == 2:  # fmi3IntervalChanged: counted from this event
                 self.interval_ns[i] = events.whole(float(seconds), c, t_ns)
                 self.next_ns[i] = t_ns + self.interval_ns[i]

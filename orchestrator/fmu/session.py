@@ -35,6 +35,8 @@ from .info import BUS_KINDS, EXACT, INT_RANGES, FmuInfo, Signal
 from .states import FMUState, SerializedFMUState, StatePool
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+MAX_EARLY_RETURNS = 1000
+"""Early returns from one step before the FMU is said not to get on."""
 _WHAT_NOW = ("Remove the module (world.remove_module) or load the world again; with isolate: true it is restarted "
              "from scratch")
 _FMI_TYPE = {"real": "Float64", "float32": "Float32", "int8": "Int8", "uint8": "UInt8", "int16": "Int16",
@@ -88,6 +90,12 @@ def groups_at(api: FmuApi, signals: list[tuple[Signal, int]]) -> list[Group]:
             out.append(Group(kind, _vrs([s for s, _ in sigs]), where, np.zeros(len(where), dtype=api.DTYPES[kind]),
                              _names([s for s, _ in sigs])))
     return out
+
+
+def _step_flags(flags: np.ndarray) -> tuple[bool, bool, bool, float]:
+    """FMI 3.0 DoStep's out arguments as the steppers keep them (bytes: eventHandlingNeeded,
+    terminateSimulation, earlyReturn; lastSuccessfulTime at byte 24)."""
+    return bool(flags[0]), bool(flags[1]), bool(flags[2]), float(flags[24:32].view(np.float64)[0])
 
 
 def unclocked(signals: tuple[Signal, ...]) -> list[Signal]:
@@ -284,9 +292,12 @@ class Session:
             self.failed(rc, slot, t_ns)
         if events is not None:
             try:
+                needed, _, early, _ = _step_flags(stepper._flags)
+                if early:
+                    needed = self.step_on(t_ns, dt_ns)
                 if self.out_typed:
                     self.read_typed_outputs()
-                events.handle(t_ns + dt_ns, bool(stepper.event_needed))
+                events.handle(t_ns + dt_ns, needed)
             except ModuleError as exc:
                 self._failed_call(exc, 3)
                 raise
@@ -359,6 +370,42 @@ class Session:
         if not self.info.can_get_set:
             return "canGetAndSetFMUstate is false"
         return "its state is not kept here (no rollback)"
+
+    def step_on(self, t_ns: int, dt_ns: int) -> bool:
+        """After a step that returned early (FMI 3.0 early return; allowed to FMUs with event mode):
+        handle the event where the FMU stopped (event mode there when it says ``eventHandlingNeeded``),
+        then step on from that time to the step's end, as often as it returns early. Whether the last
+        piece needs event handling at the end."""
+        api, stepper, events = self.api, self.stepper, self.events
+        end = stepper.t0 + (t_ns + dt_ns) / 1e9
+        since = stepper.t0 + t_ns / 1e9
+        needed, _, _, reached = _step_flags(stepper._flags)
+        flags = api._flag_bytes
+        base = flags.ctypes.data
+        for _ in range(MAX_EARLY_RETURNS):
+            if not since <= reached < end:
+                raise FMUCallError(self.name, "fmi3DoStep", None, f"{self.info.label} returned early at "
+                                   f"t={reached:g} s, outside its step from t={since:g} s to t={end:g} s")
+            if self.out_typed:
+                self.read_typed_outputs()
+            if needed:  # the event where it stopped
+                events.handle(round((reached - stepper.t0) * 1e9), True)
+            self.write_inputs()
+            flags[:3] = 0
+            api._call("do_step", api.instance, reached, end - reached, stepper.no_prior, base, base + 1, base + 2,
+                      base + 24)
+            needed, terminate, early, now = _step_flags(flags)
+            if terminate:
+                said = api.sink.take()
+                raise FMUTerminatedError(self.name, "fmi3DoStep", None, f"{self.info.label} asked to end the "
+                                         f"simulation in its step from t={reached:g} s"
+                                         + (" (" + " | ".join(said) + ")" if said else ""))
+            self.read_outputs()
+            if not early:
+                return needed
+            since, reached = reached, now
+        raise FMUCallError(self.name, "fmi3DoStep", None, f"{self.info.label} returned early {MAX_EARLY_RETURNS} "
+                           f"times in one step from t={stepper.t0 + t_ns / 1e9:g} s")
 
     # -- states --------------------------------------------------------------------------------------
     def capture(self) -> FMUState:

@@ -42,11 +42,12 @@ fmi3Instance fmi3InstantiateCoSimulation(fmi3String instanceName, fmi3String ins
                                          fmi3InstanceEnvironment instanceEnvironment,
                                          fmi3LogMessageCallback logMessage,
                                          fmi3IntermediateUpdateCallback intermediateUpdate) {
-    (void)resourcePath, (void)visible, (void)earlyReturnAllowed;
+    (void)resourcePath, (void)visible;
     (void)requiredIntermediateVariables, (void)nRequiredIntermediateVariables, (void)intermediateUpdate;
     Instance *inst = core_new(instanceName, instantiationToken, emit3, instanceEnvironment, (void *)logMessage,
                               loggingOn);
     if (inst) inst->event_mode_used = eventModeUsed;
+    if (inst) inst->early_allowed = earlyReturnAllowed;
     return inst;
 }
 
@@ -333,7 +334,7 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     int s = core_do_step(INST, currentCommunicationPoint, communicationStepSize);
     if (eventHandlingNeeded) *eventHandlingNeeded = instance && INST->event_mode_used && core_event_pending(INST);
     if (terminateSimulation) *terminateSimulation = instance && INST->stop;
-    if (earlyReturn) *earlyReturn = false;
+    if (earlyReturn) *earlyReturn = instance && INST->early;
     if (lastSuccessfulTime && instance) *lastSuccessfulTime = INST->d.time;
     return (fmi3Status)s;
 }

@@ -75,6 +75,14 @@ void fmu_set_interval(const ModelData *m, int clock, double seconds) {
 #endif
 }
 
+int fmu_return_early(const ModelData *m, double t) {
+    Instance *inst = (Instance *)m;
+    if (!inst->early_allowed || !(t >= m->time)) return 0;
+    inst->early = true;
+    inst->d.time = t; /* the time the step reached (lastSuccessfulTime) */
+    return 1;
+}
+
 void core_log(Instance *inst, int status, const char *category, const char *format, ...) {
     char message[1024];
     va_list args;
@@ -186,7 +194,10 @@ int core_do_step(Instance *inst, double t, double h) {
     }
     inst->d.time = t;
     inst->stop = false;
+    inst->early = false;
     s = model_step(&inst->d, h);
+    if (s <= MODEL_WARNING && inst->early && inst->d.time < t + h) return s; /* ended early, at d.time */
+    inst->early = false;
     if (s <= MODEL_WARNING) inst->d.time = t + h;
     else if (s > MODEL_DISCARD) return fail(inst, s);
     return s;

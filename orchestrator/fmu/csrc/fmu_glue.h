@@ -62,6 +62,8 @@ typedef struct Instance {
     bool event_mode_used;                 /* FMI 3: the master handles events (clocks) in event mode */
     unsigned char clock_active[NCLOCKS + 1]; /* in event mode: the clocks ticking now */
     unsigned char clock_done[NCLOCKS + 1];   /* ... and the input clocks model_clock has run for */
+    bool early_allowed; /* FMI 3: the master handles an early return (earlyReturnAllowed) */
+    bool early;         /* the model returned early from the last step (fmu_return_early), at d.time */
 } Instance;
 
 /* A saved FMU state: the model data and the mode it was in. */

@@ -56,6 +56,13 @@ void fmu_tick(const ModelData *m, int clock);
  * countdown, the clock ticks once when it runs out). The master reads it after the event. */
 void fmu_set_interval(const ModelData *m, int clock, double seconds);
 
+/* In model_step, at an event inside the step (a threshold crossed, an output clock ticked): whether
+ * the master lets the step end there (FMI 3.0 early return). If it returns 1, the model has advanced
+ * itself to time `t` (from m->time up to the step's end) and returns MODEL_OK: the glue reports the
+ * step as ended at `t`, the master handles the event there and steps on from `t`. If 0, the model
+ * goes on to the step's end. */
+int fmu_return_early(const ModelData *m, double t);
+
 /* Log a message through the master's logger (printf format). */
 void fmu_log(const ModelData *m, int status, const char *format, ...)
 #if defined(__GNUC__)
