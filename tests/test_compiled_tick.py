@@ -63,7 +63,7 @@ def record(world: World, ticks: int, frames: list) -> None:
     """Step ``ticks`` ticks; after each, the bus (as int64, bit for bit) and every module's saved state."""
     for _ in range(ticks):
         world.tick()
-        top = world.history.top
+        top = world.history.top if world.history.every == 1 else world.snapshot()  # keyframes: a capture now
         assert np.array_equal(top.bus.view(np.int64), world._buf.view(np.int64))  # (the bus may hold NaN)
         frames.append((top.tick, top.bus.view(np.int64).copy(), pickle.dumps((top.states, top.params))))
 
@@ -71,7 +71,7 @@ def record(world: World, ticks: int, frames: list) -> None:
 def chain(compiled: bool) -> tuple[World, list]:
     """A chain of state modules (delayed connections) and feedthrough fans (direct ones, scrambled),
     with periods of 1, 2 and 3 ms, a module that joins late (its own phase), edits and rollbacks."""
-    w = World("chain", step="1ms", seed=11, history=40, compiled=compiled)
+    w = World("chain", step="1ms", seed=11, history=40, compiled=compiled, keyframe_every=1)  # `record` reads each
     w.add_module(Noise("noise", n=3, sigma=0.3))
     w.add_module(Integrator("int", n=3), period="2ms", connect=[("noise.y", "int.u")])
     w.add_module(Gain("gain-1", n=3, k=1.7), connect=[("int.y", "gain-1.u")])

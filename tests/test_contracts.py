@@ -73,7 +73,8 @@ class Steady(Module):
 
 
 def physics_world(name: str) -> World:
-    world = World(name, step="2ms", history=200, core=MujocoCore("core", scene()))
+    # a state every tick: these tests read history's newest entry and count the states saved per tick
+    world = World(name, step="2ms", history=200, core=MujocoCore("core", scene()), keyframe_every=1)
     world.add_module(Steady("steady"))
     return world
 

@@ -267,7 +267,7 @@ class Latch(Module):
 
 
 def test_a_module_whose_steps_leave_its_state_alone_is_saved_once_and_rolls_back_exactly():
-    w = World(step="1ms")
+    w = World(step="1ms", keyframe_every=1)  # a state every tick: the saves counted are per tick
     latch = Latch("l")
     w.add_module(latch)
     w.add_module(Counter("c"))

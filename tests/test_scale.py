@@ -131,7 +131,7 @@ def test_a_model_files_own_memory_is_kept(tmp_path):
 # -- history ------------------------------------------------------------------------------------------------
 SMALL = """
     name: s
-    world: {step: 2ms, duration: 20ms, core: mujoco, history: HISTORY}
+    world: {step: 2ms, duration: 20ms, core: mujoco, keyframe_every: 1, history: HISTORY}
     scene:
       - plane: {name: floor}
       - box: {name: b, size: [0.1, 0.1, 0.1], mass: 0.2, pos: [0, 0, 0.3]}
@@ -186,7 +186,7 @@ class Eye(Module):
 
 
 def test_a_world_built_in_python_is_refused_at_its_first_tick_and_when_it_grows():
-    world = World("w", history=1000)
+    world = World("w", history=1000, keyframe_every=1)  # a state every tick (the default keeps a quarter)
     world.history.budget = 2**30
     world.add_module(Eye("eye", 64))  # 98 KiB a state: 96 MiB when full
     world.tick(2)
@@ -217,8 +217,12 @@ def test_a_camera_whose_history_would_not_fit_is_refused(tmp_path):
         modules:
           - {name: eye, python: dynabrain.modules.camera:Camera, targets: [cam], params: {width: 1024, height: 1024}}
     """)
-    (problem,) = _problems(path)
+    (problem,) = _problems(path)  # keyframes every 4 ticks (the default): 252 states kept
     assert problem.field == "world.history"
+    assert "would hold 7.9 GiB when full (252 states" in problem.message
+    assert "the module 'eye' holds 32.0 MiB" in problem.message
+    path.write_text(path.read_text().replace("history: 1000,", "history: 1000, keyframe_every: 1,"))
+    (problem,) = _problems(path)  # a state every tick
     assert "would hold 31.3 GiB when full" in problem.message and "the module 'eye' holds 32.0 MiB" in problem.message
 
 

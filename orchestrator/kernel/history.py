@@ -110,7 +110,8 @@ class History:
     The first state of each structure (`replace_top`: the world's first state after a change) is
     checked against it (`check`), so a history that would not fit is refused before it grows.
 
-    ``every``: keyframes. 1 (the default): a state every tick. k > 1: a state every k ticks (at ticks
+    ``every``: keyframes. 1 (History's default; a `World` keeps one every 4 ticks unless told
+    otherwise): a state every tick. k > 1: a state every k ticks (at ticks
     that are multiples of k), and after every edit or event (the world pushes those whole); the ticks
     between hold only their number, and `restore_point` gives the keyframe before a tick and how many
     ticks the world steps again from it to reach that tick (`World.backtick`). It trades the cost of

@@ -55,6 +55,10 @@ class WorldCfg(_Strict):
     seed: Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)] = 0
     history: Annotated[int, Field(strict=True, ge=0)] = 1000
     """How many ticks `backtick` can go back."""
+    keyframe_every: Annotated[int, Field(strict=True, ge=1)] = 4
+    """History keeps a whole state every this many ticks (and after each edit or event), and steps the
+    ticks between again when a backtick goes to one: 1 keeps a state every tick (`World`'s docstring
+    says what each costs)."""
     history_budget: ByteSize | None = None
     """The most memory the history may hold when full (``2GiB``, ``25%``); default: `kernel.history.default_budget`."""
     realtime: Realtime = False
@@ -326,7 +330,7 @@ class _Builder:
         if self.sc.duration_ns % step:
             self.report(("world", "duration"), f"the duration ({format_duration(self.sc.duration_ns)}) is not a "
                                                f"whole number of {cfg.step} steps")
-        world = World(m.name, step=step, seed=cfg.seed, history=cfg.history)
+        world = World(m.name, step=step, seed=cfg.seed, history=cfg.history, keyframe_every=cfg.keyframe_every)
         if cfg.history_budget is not None:
             world.history.budget = cfg.history_budget
         self._add_core(world, cfg)
