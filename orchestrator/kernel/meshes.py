@@ -1,5 +1,5 @@
-"""Triangle meshes of ``mesh`` bodies, in plain numpy: reading them (Wavefront ``.obj``, ``.stl`` ASCII or
-binary), their convex hull, and the mass properties of a closed mesh.
+"""Triangle meshes of ``mesh`` bodies: reading them (Wavefront ``.obj``, ``.stl`` ASCII or binary, in
+plain numpy), their convex hull (Qhull, through SciPy), and the mass properties of a closed mesh.
 
 A `Mesh` is what a `BodySpec` keeps: the vertices (in the body frame, before the body's ``scale``) and
 triangles (indices into them; empty when only vertices were given). A file is read once, when the spec
@@ -26,7 +26,7 @@ from .errors import UnitError
 from .portable import state_type
 
 MAX_VERTICES = 20_000
-"""Most vertices of a mesh body (its convex hull is computed in Python, and a log carries them)."""
+"""Most vertices of a mesh body (a log and a bridge message carry them)."""
 MAX_FILE_BYTES = 64 * 2**20
 """Largest mesh file read."""
 MESH_SUFFIXES = (".obj", ".stl")
@@ -166,64 +166,22 @@ def _read_stl(data: bytes) -> tuple[np.ndarray, np.ndarray]:
 @functools.lru_cache(maxsize=64)
 def convex_hull(mesh: Mesh, scale: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
     """(points, triangles) of the convex hull of the mesh's vertices times ``scale``: the hull's own
-    vertices and its triangles, counter-clockwise seen from outside (incremental hull)."""
+    vertices and its triangles, counter-clockwise seen from outside (Qhull, through SciPy)."""
+    from scipy.spatial import ConvexHull, QhullError
+
     p = np.asarray(mesh.vertices, dtype=float) * np.asarray(scale, dtype=float)
-    span = float(np.ptp(p, axis=0).max())
-    eps = 1e-9 * span if span > 0 else 0.0
-    first = _simplex(p, eps)
-    if first is None:
-        raise UnitError("a mesh must span a volume (its vertices lie on a plane, a line or a point)")
-    a, b, c, d = first
-    faces = [(a, b, c), (a, c, d), (a, d, b), (b, d, c)]
-    if _signed(p, faces[0], p[d]) > 0:  # orient them outward
-        faces = [(x, z, y) for x, y, z in faces]
-    tri = np.array(faces, dtype=int)
-    normal, offset = _planes(p, tri)
-    for i in np.argsort(-np.linalg.norm(p - p[list(first)].mean(axis=0), axis=1)):  # far points first
-        if i in first:
-            continue
-        visible = normal @ p[i] - offset > eps * np.linalg.norm(normal, axis=1)
-        if not visible.any():
-            continue
-        edges = {(int(x), int(y)) for t in tri[visible] for x, y in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
-        horizon = [(x, y, int(i)) for x, y in edges if (y, x) not in edges]
-        new = np.array(horizon, dtype=int)
-        n_new, o_new = _planes(p, new)
-        tri = np.vstack([tri[~visible], new])
-        normal, offset = np.vstack([normal[~visible], n_new]), np.concatenate([offset[~visible], o_new])
+    try:
+        hull = ConvexHull(p)
+    except (QhullError, ValueError):
+        raise UnitError("a mesh must span a volume (its vertices lie on a plane, a line or a point)") from None
+    tri = hull.simplices.copy()
+    a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
+    inward = np.einsum("ij,ij->i", np.cross(b - a, c - a), hull.equations[:, :3]) < 0  # Qhull: outward normals
+    tri[inward] = tri[inward][:, ::-1]
     used = np.unique(tri)
     remap = np.full(len(p), -1)
     remap[used] = np.arange(len(used))
     return p[used], remap[tri]
-
-
-def _simplex(p: np.ndarray, eps: float) -> tuple[int, int, int, int] | None:
-    """Four points that span a tetrahedron, or None."""
-    a = int(np.argmin(p[:, 0]))
-    b = int(np.argmax(np.linalg.norm(p - p[a], axis=1)))
-    ab = p[b] - p[a]
-    if np.linalg.norm(ab) <= eps:
-        return None
-    c = int(np.argmax(np.linalg.norm(np.cross(p - p[a], ab), axis=1)))
-    n = np.cross(ab, p[c] - p[a])
-    if np.linalg.norm(n) <= eps * np.linalg.norm(ab):
-        return None
-    dist = (p - p[a]) @ (n / np.linalg.norm(n))
-    d = int(np.argmax(np.abs(dist)))
-    if abs(dist[d]) <= eps:
-        return None
-    return a, b, c, d
-
-
-def _signed(p: np.ndarray, face: tuple[int, int, int], q: np.ndarray) -> float:
-    a, b, c = (p[i] for i in face)
-    return float(np.cross(b - a, c - a) @ (q - a))
-
-
-def _planes(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a, b, c = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
-    normal = np.cross(b - a, c - a)
-    return normal, np.einsum("ij,ij->i", normal, a)
 
 
 def hull_volume(mesh: Mesh, scale: tuple[float, float, float]) -> float:
