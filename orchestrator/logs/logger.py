@@ -39,9 +39,11 @@ them too.
 **Cost.** The stepping thread copies the bus row into a preallocated block of shared memory (rows of
 consecutive ticks of one layout and epoch: a row's tick is its block's first tick plus its index, so
 a tick makes no Python object; one memoryview copy while nothing else is due: `McapLogger.on_tick`;
-blocks are mapped with their pages, so no row faults one in) and, every ``batch`` ticks, tells the
-child writer which rows to take. When the blocks run out (rows so large that a block holds a few, or a
-writer behind), the rows beyond the window are handed over at once, and only then does it wait.
+blocks are mapped with their pages, so no row faults one in; a layout's first ``PREPARED`` blocks are
+made when it appears, not by the first ticks; a block handed back last is reused first, its memory the
+likeliest in a cache) and, every ``batch`` ticks, tells the child writer which rows to take. When the
+blocks run out (rows so large that a block holds a few, or a writer behind), the rows beyond the window
+are handed over at once, and only then does it wait.
 The child encodes them (a few numpy operations per channel and batch: poses are taken from the bus's
 ``<core>.<body>.pos`` / ``.quat`` columns), compresses and writes, on a core of its own and under an
 interpreter lock of its own. Every writer call (schemas, channels, events) goes to the child the same
@@ -82,10 +84,14 @@ from .schema import (
     pose_columns,
 )
 from .sink import NOTHING_WRITTEN, ProcessSink, ThreadSink
+from .write import COMPRESSIONS
 
 _log = logging.getLogger("dynabrain.mcap")
 BLOCK_BYTES = 2 << 20
 """Bus rows a block holds at most (bytes; and at most ``batch`` rows)."""
+PREPARED = 2
+"""Blocks made per bus layout when it appears (enough for a writer that keeps up); more are made while
+the writer is behind, up to ``MAX_BLOCKS``."""
 MAX_BLOCKS = 24
 """Blocks of rows per bus layout at most (48 MiB): when the writer is that far behind, the stepping
 thread waits for it."""
@@ -119,16 +125,20 @@ class McapLogger(Observer):
     ``decimate``: poses every that many ticks; ``scene_every``: the scene every that many ticks
     (default: one simulated second) and after each `make`; ``window``: ticks held back for rollbacks;
     ``batch``: ticks encoded and written together (at most ``flush_s / 2`` s after the first is due);
-    ``chunk_bytes``, ``chunk_s``, ``flush_s``, ``level``: a chunk's size at most, the simulated time it
-    spans at most, its age (wall time) at most, the zstd level; ``writer``: ``"process"`` (a child
+    ``chunk_bytes``, ``chunk_s``, ``flush_s``, ``compression``, ``level``: a chunk's size at most (4 MB: each
+    chunk repeats the schemas and channels of its messages, about 60 KB for the humanoid, which cost 6% of
+    the data and, with the per-chunk work, 3 us a tick of the writer's 29 at 1 MB), the simulated time it
+    spans at most, its age (wall time) at most, its compression (``"zstd"``, ``"lz4"`` or ``"none"``) and
+    the zstd level (`logs.write`); ``writer``: ``"process"`` (a child
     process writes the file; the default) or ``"thread"`` (a thread of this process); ``ros2``: also
     ``/clock`` and ``/joint_states``, and ``/tf`` as ``tf2_msgs/msg/TFMessage``, in CDR with ``ros2msg``
     schemas (`logs.sink.Ros2Rows`), for rosbag2 users.
     """
 
     def __init__(self, path: str | os.PathLike[str], *, decimate: int = 1, scene_every: int | None = None,
-                 window: int = 64, batch: int = 256, chunk_bytes: int = 1 << 20, chunk_s: float = 1.0,
-                 flush_s: float = 0.25, level: int = -1, writer: str = "process", ros2: bool = False):
+                 window: int = 64, batch: int = 256, chunk_bytes: int = 4 << 20, chunk_s: float = 1.0,
+                 flush_s: float = 0.25, level: int = -1, compression: str = "zstd", writer: str = "process",
+                 ros2: bool = False):
         for name, value, low in (("decimate", decimate, 1), ("window", window, 0), ("batch", batch, 1),
                                  ("scene_every", scene_every or 1, 1), ("chunk_bytes", chunk_bytes, 1)):
             if not isinstance(value, int) or value < low:
@@ -141,8 +151,11 @@ class McapLogger(Observer):
         self.writer = writer
         self.ros2 = bool(ros2)
         self.decimate, self.scene_every, self.window, self.batch = decimate, scene_every, window, batch
+        if compression not in COMPRESSIONS:
+            raise DynabrainError(f"McapLogger: compression must be one of {', '.join(map(repr, COMPRESSIONS))}, "
+                                 f"got {compression!r}")
         self._writer_args = {"chunk_bytes": chunk_bytes, "chunk_ns": max(1, round(chunk_s * 1e9)), "flush_s": flush_s,
-                             "level": level}
+                             "level": level, "compression": compression}
         self._max_wait = flush_s / 2
         self._drained_at = time.monotonic()
         self._sink: ThreadSink | ProcessSink | None = None
@@ -372,12 +385,10 @@ class McapLogger(Observer):
     def _start_block(self, tick: int) -> _Block:
         self._seal()
         codec = self._codec
-        pool = self._pools.get(codec.key)
-        if pool is None:
-            pool = self._pools[codec.key] = deque()
+        pool = self._pools[codec.key]
         sink = self._sink
         sink.poll()
-        capacity = max(1, min(self.batch, BLOCK_BYTES // (8 * codec.size)))
+        capacity = self._capacity(codec)
         # at most MAX_BLOCKS, and at least the blocks the window's rows can span and one more
         most = max(MAX_BLOCKS, -(-self.window // capacity) + 2)
         while not pool and self._made.get(codec.key, 0) >= most:  # the writer is behind: wait for it
@@ -388,7 +399,7 @@ class McapLogger(Observer):
                     continue
             sink.wait()
         try:
-            block = pool.popleft()
+            block = pool.pop()  # the block handed back last: its memory is the likeliest still in a cache
         except IndexError:
             block = _Block(codec, capacity, 7 * len(self._missing), pool, sink)
             self._made[codec.key] = self._made.get(codec.key, 0) + 1
@@ -441,6 +452,20 @@ class McapLogger(Observer):
         self._codec = codec
         self._missing = self._pose_index[codec.key][1]
         self._dirty = False
+        if codec.key not in self._pools:
+            self._prepare(codec)
+
+    def _prepare(self, codec: BusCodec) -> None:
+        """Make a new layout's first blocks now (``PREPARED``): making one maps and zeroes its memory, about
+        1.3 ms for the humanoid's 1.6 MB, which the first ticks of a run would otherwise wait for."""
+        pool = self._pools[codec.key] = deque()
+        capacity = self._capacity(codec)
+        for _ in range(PREPARED):
+            pool.append(_Block(codec, capacity, 7 * len(self._missing), pool, self._sink))
+        self._made[codec.key] = PREPARED
+
+    def _capacity(self, codec: BusCodec) -> int:
+        return max(1, min(self.batch, BLOCK_BYTES // (8 * codec.size)))
 
     def _joints(self, view: WorldView, slots: dict) -> tuple[tuple[str, ...], np.ndarray] | None:
         """For ROS 2 messages: the joints of ``/joint_states`` and their bus columns (q, qd[, effort])."""

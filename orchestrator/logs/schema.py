@@ -59,6 +59,7 @@ the tests decode them with the foxglove schema package and the mcap package's pr
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 from collections.abc import Mapping, Sequence
@@ -177,13 +178,13 @@ class _Run:
     data: int
     bus_start: int  # in bytes
 
-    @property
+    @functools.cached_property
     def records(self) -> np.dtype:
         value = "<f8" if self.data == 8 else ("V", self.data)
         return np.dtype({"names": ["h", "d"], "formats": [("V", self.head), value], "offsets": [0, self.head],
                          "itemsize": self.head + self.data})
 
-    @property
+    @functools.cached_property
     def values(self) -> np.dtype:
         return np.dtype("<f8") if self.data == 8 else np.dtype(("V", self.data))
 
@@ -257,7 +258,6 @@ class BusCodec:
         self.template = np.frombuffer(bytes(template), dtype=np.uint8)
         self.length = len(template)
         self.runs = tuple(_Run(*r) for r in runs)
-        self._heads = [r.of(self.template[None, :])["h"][0] for r in self.runs]
         self._buf = np.empty((0, self.length), dtype=np.uint8)
 
     # -- encoding --------------------------------------------------------------------------------------
@@ -270,10 +270,10 @@ class BusCodec:
             if len(self._buf) < n:
                 self._buf = np.tile(self.template, (max(n, 64), 1))
             out = self._buf[:n]
-        else:  # every header byte, as the template has them
-            out[:, 0:27:9] = self.template[0:27:9]
-            for r, head in zip(self.runs, self._heads, strict=True):
-                r.of(out)["h"] = head
+        else:  # the template first, in one pass (row by row, in order), then the values: where ``out`` is
+            # a chunk's fresh memory, writing each run's header bytes in a pass of their own (every cache line
+            # of every message, once per run) cost the humanoid's 13 runs 2.2 us a tick, this 1.35
+            out[...] = self.template
         ticks = np.asarray(ticks, dtype=np.int64)
         header = out[:, :HEADER_BYTES].view(_MESSAGE_HEADER)[:, 0]
         header["tick"], header["epoch"], header["time"] = ticks, epochs, ticks * dt_ns / 1e9

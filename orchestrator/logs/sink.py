@@ -447,8 +447,8 @@ def _mapped(shared: Shared, maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> np
     path, shape = shared
     hit = maps.get(path)
     if hit is None:
-        with open(path, "r+b") as fh:
-            mm = mmap.mmap(fh.fileno(), 0)
+        with open(path, "r+b") as fh:  # its pages mapped now (they exist: the parent reserved them), not
+            mm = mmap.mmap(fh.fileno(), 0, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))  # row by row
         with contextlib.suppress(OSError):
             os.unlink(path)  # both processes have it mapped now: the name is no longer needed
         hit = maps[path] = (mm, np.frombuffer(mm, dtype=np.float64, count=int(np.prod(shape))).reshape(shape))

@@ -6,9 +6,14 @@ message records with a few numpy operations, written straight into a reusable ch
 memory for every chunk would cost a page fault per 4 KiB). Files are read back by the ``mcap``
 package in the tests, as an independent check.
 
-Finished chunks are compressed (zstd level -1, its first fast level, by default: on the humanoid's
-log about 620 MB/s for a 2.38 ratio, where level 1 gives 520 MB/s for 2.40 and level 3 290 MB/s for
-2.53) and written by a thread of the writer's own, so compression overlaps the simulation on a second core.
+Finished chunks are compressed (``compression``: zstd, the default, at ``level`` -1, its first fast level;
+lz4; or none) and written by a thread of the writer's own, so compression overlaps the simulation on a
+second core. On the humanoid's log (about 9.4 KB a tick before compression, mostly float64 bus values)
+zstd costs the most of the writer's CPU time: per tick and 4 MB chunk, level 1 14.5 us for a 2.58
+ratio, -1 12.3 us for 2.54, -2 11.1 us for 2.41, -3 10.3 us for 2.24, -5 9.5 us for 1.91; lz4 11.3 us
+for 1.97; a crc32 of the chunk 1.4 us (measured on this 2-core machine, ``bench/logging_cost.py``
+prints the writer's whole time). A chunk goes to the file with one ``os.writev`` of its header, its
+compressed data and its message indexes (no copy of the compressed data).
 A caller can hand that thread whole jobs (`call`: encode a batch and add it, for instance): every
 writer call made inside a job runs there, in order, and its chunks are compressed there too.
 
@@ -63,6 +68,10 @@ QUEUE_DEPTH = 2
 the thread waits beyond this."""
 CHUNK_NS = 1_000_000_000
 """Log time one chunk spans at most by default (ns): one second of simulated time."""
+COMPRESSIONS = ("zstd", "lz4", "none")
+"""A chunk's compression: zstd (at ``level``), lz4 (its frame format, the fastest level) or none."""
+IOV_MAX = os.sysconf("SC_IOV_MAX") if hasattr(os, "sysconf") and "SC_IOV_MAX" in os.sysconf_names else 16
+"""Buffers one ``os.writev`` takes at most (more take more calls)."""
 MESSAGE_HEADER = struct.Struct("<BQHIQQ")
 """opcode, record length, channel id, sequence, log time, publish time (then the data)."""
 
@@ -140,7 +149,8 @@ class McapWriter:
     handed to the writer's own thread (`call`); the writer's thread compresses and writes chunks."""
 
     def __init__(self, path: str | os.PathLike[str], *, chunk_bytes: int = 1 << 20, flush_s: float = 0.25,
-                 chunk_ns: int | None = CHUNK_NS, level: int = -1, profile: str = "", library: str = "dynabrain"):
+                 chunk_ns: int | None = CHUNK_NS, level: int = -1, compression: str = "zstd", profile: str = "",
+                 library: str = "dynabrain"):
         self.path = os.fspath(path)
         try:
             self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
@@ -149,7 +159,11 @@ class McapWriter:
         if chunk_ns is not None and (isinstance(chunk_ns, bool) or not isinstance(chunk_ns, int) or chunk_ns < 1):
             raise DynabrainError(f"McapWriter: chunk_ns must be a positive integer or None, got {chunk_ns!r}")
         self.chunk_bytes, self.flush_s, self.chunk_ns = chunk_bytes, flush_s, chunk_ns
-        self._zstd = zstandard.ZstdCompressor(level=level)
+        if compression not in COMPRESSIONS:
+            raise DynabrainError(f"McapWriter: compression must be one of {', '.join(map(repr, COMPRESSIONS))}, "
+                                 f"got {compression!r}")
+        self.compression = "" if compression == "none" else compression
+        self._compress = _compressor(self.compression, level)
         self._pos = 0
         self._schemas: dict[int, bytes] = {}
         self._channels: dict[int, bytes] = {}
@@ -166,7 +180,7 @@ class McapWriter:
         """CPU time the writing thread has spent (compressing and writing)."""
         self._t_min: int | None = None
         self._t_max = 0
-        self._spare: queue.Queue[_Chunk] = queue.Queue()
+        self._spare: queue.LifoQueue[_Chunk] = queue.LifoQueue()  # the buffer freed last is reused first: warm
         self._made = 1
         self._chunk = _Chunk(2 * chunk_bytes)
         self._error: BaseException | None = None
@@ -184,7 +198,7 @@ class McapWriter:
             self._spare.put(_Chunk(2 * self.chunk_bytes))
         for chunk in [self._chunk, *self._spare.queue]:
             chunk.buf[chunk.pos:].fill(0)  # (records already in the chunk stay)
-        self._zstd.compress(bytes(self.chunk_bytes))
+        self._compress(bytes(self.chunk_bytes))
 
     def call(self, job: Callable[[], None]) -> None:
         """Run ``job`` on the writing thread after everything handed to it before. Writer calls made
@@ -389,14 +403,16 @@ class McapWriter:
         size, t_min, t_max, index = chunk.pos, chunk.t_min or 0, chunk.t_max, chunk.index
         try:
             raw = memoryview(chunk.buf)[:size]
-            packed = self._zstd.compress(raw)
+            packed = self._compress(raw)
             crc = zlib.crc32(raw)
             del raw
         finally:
             self._spare.put(chunk)  # the buffer is free again (also when this failed)
-        body = struct.pack("<QQQI", t_min, t_max, size, crc) + pack_str("zstd") + struct.pack("<Q", len(packed))
-        data = struct.pack("<BQ", OP_CHUNK, len(body) + len(packed)) + body + packed
-        start, at = self._pos, self._pos + len(data)
+        kind = pack_str(self.compression)
+        body = struct.pack("<QQQI", t_min, t_max, size, crc) + kind + struct.pack("<Q", len(packed))
+        head = struct.pack("<BQ", OP_CHUNK, len(body) + len(packed)) + body
+        chunk_len = len(head) + len(packed)
+        start, at = self._pos, self._pos + chunk_len
         indexes, offsets = [], {}
         for cid, parts in index.items():
             entries = np.concatenate(parts)
@@ -405,24 +421,28 @@ class McapWriter:
             offsets[cid] = at
             at += len(rec)
             indexes.append(rec)
-        self._write(data + b"".join(indexes))
-        body = struct.pack("<QQQQ", t_min, t_max, start, len(data))
+        self._write(head, packed, *indexes)  # one system call, no copy of the compressed data
+        body = struct.pack("<QQQQ", t_min, t_max, start, chunk_len)
         body += struct.pack("<I", 10 * len(offsets)) + b"".join(struct.pack("<HQ", c, o) for c, o in offsets.items())
-        body += struct.pack("<Q", at - start - len(data)) + pack_str("zstd") + struct.pack("<QQ", len(packed), size)
+        body += struct.pack("<Q", at - start - chunk_len) + kind + struct.pack("<QQ", len(packed), size)
         self._chunk_indexes.append(record(OP_CHUNK_INDEX, body))
         self.chunks += 1
         self._t_min = t_min if self._t_min is None else min(self._t_min, t_min)
         self._t_max = max(self._t_max, t_max)
 
-    def _write(self, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
+    def _write(self, *data: bytes) -> None:
+        """Write ``data`` (byte strings, in order) to the file, with as few system calls as it takes."""
+        views = [memoryview(d) for d in data if len(d)]
+        self._pos += sum(len(v) for v in views)
+        while views:
             try:
-                done = os.write(self._fd, view)
+                done = os.writev(self._fd, views[:IOV_MAX])
             except OSError as exc:
                 raise DynabrainError(f"writing the log {self.path} failed: {exc.strerror}") from None
-            view = view[done:]
-        self._pos += len(data)
+            while views and done >= len(views[0]):
+                done -= len(views.pop(0))
+            if views:
+                views[0] = views[0][done:]
 
     # -- the writing thread ---------------------------------------------------------------------------
     def _submit(self, job: Callable[[], None]) -> None:
@@ -503,6 +523,19 @@ class McapWriter:
     @property
     def bytes_written(self) -> int:
         return self._pos
+
+
+def _compressor(compression: str, level: int) -> Callable[[memoryview | bytes], bytes]:
+    if compression == "zstd":
+        return zstandard.ZstdCompressor(level=level).compress
+    if compression == "lz4":
+        import lz4.frame
+
+        def lz4_frame(data: memoryview | bytes) -> bytes:  # the chunk's CRC covers the data: no checksum of lz4's
+            return lz4.frame.compress(data, compression_level=0, content_checksum=False, store_size=True)
+
+        return lz4_frame
+    return bytes
 
 
 class _Merge:
