@@ -170,13 +170,13 @@ class WorldService:
             with w.lock():
                 if done == 0 and a.view is not None:
                     self.get_view(a.view)  # refused before any tick when the view is unknown
-                end = time.monotonic() + SLICE_S
+                end = time.monotonic() + SLICE_S if a.n > 1 else 0.0
                 while done < a.n:
                     if self._pending:
                         self.apply_pending()
                     w.tick()
                     done += 1
-                    if between is not None and time.monotonic() > end:
+                    if done < a.n and between is not None and time.monotonic() > end:
                         break
                 if done >= a.n:
                     return self.frame(self.get_view(a.view)) if a.view is not None else None
@@ -186,6 +186,28 @@ class WorldService:
                     f"tick stopped by brain {stopped_by!r} after {done} of {a.n} ticks (they are kept: the world "
                     f"is at tick {w.tick_count})",
                     {"ticks_done": done, "ticks_asked": a.n, "tick": w.tick_count, "by": stopped_by})
+
+    def step_frame(self, a: p.TickArgs | p.ViewRef) -> bytes | None:
+        """A one-step ``tick`` with a view, or a ``read``, in fewer steps than `do_tick` / `do_read`: the
+        lock-step brain's hot path (the same tick, inputs and frame). None, before any tick, when the call
+        is not that simple (several ticks, no view, a view unknown or made for another structure): the
+        caller then runs the call's own handler, which resolves the view again or refuses it."""
+        vid = a.view
+        ticks = a.__class__ is p.TickArgs
+        if vid is None or (ticks and a.n != 1):
+            return None
+        w = self.world
+        with w.lock():
+            view = self._views.get(vid)
+            if view is None or self._wv.bus().base is not view.bus:
+                return None
+            if ticks:
+                if self._pending:
+                    self.apply_pending()
+                w.tick()
+                if self._wv.bus().base is not view.bus:  # the tick changed the structure (an event)
+                    view = self.get_view(vid)
+            return self.frame(view)
 
     def do_backtick(self, a: p.BacktickArgs) -> None:
         self.world.backtick(a.n)

@@ -122,6 +122,23 @@ def unpack(payload: bytes | bytearray | memoryview, expect: int | None = None, *
     return Frame(kind, flags, source, seq, stamp, aux, values, meta)
 
 
+def state_header(payload: bytes, view: int, count: int, source: int | None) -> tuple[int, int] | None:
+    """(seq, stamp) of ``payload`` when it is exactly a STATE frame of ``count`` values of view ``view``
+    from server instance ``source`` (any, when None), else None: the checks of `unpack` plus the client's,
+    in one step, for the lock-step hot path. None says only "not that": `unpack` tells what is wrong."""
+    if len(payload) != HEADER_SIZE + 8 * count or count > MAX_VALUES:
+        return None
+    magic, kind, _flags, src, seq, stamp, aux, declared = HEADER.unpack_from(payload, 0)
+    if magic != MAGIC or kind != STATE or aux != view or declared != count or (source is not None and src != source):
+        return None
+    return seq, stamp
+
+
+def values_of(payload: bytes, count: int) -> np.ndarray:
+    """The ``count`` values of a frame whose header `state_header` accepted (read-only, over the bytes)."""
+    return np.frombuffer(payload, dtype="<f8", count=count, offset=HEADER_SIZE)
+
+
 def robot_state(q: np.ndarray, qd: np.ndarray, *, mode: int, source: int, seq: int, stamp_ns: int) -> bytes:
     """A ROBOT_STATE frame: measured positions then velocities of ``n`` joints."""
     return pack(ROBOT_STATE, np.concatenate([q, qd]), flags=mode, source=source, seq=seq, stamp=stamp_ns,

@@ -44,6 +44,11 @@ class Hold:
         self._hold: _Held | None = None
         self._calling: list[str | None] = []  # brains whose calls run now (nested: a call answered inside a long one)
 
+    @property
+    def held(self) -> bool:
+        """A brain holds the world, or did until its lease ran out (`holder` tells which, if any)."""
+        return self._hold is not None
+
     def holder(self) -> str | None:
         """The holding brain, or None (a hold whose lease ran out is released here)."""
         hold = self._hold
@@ -93,13 +98,22 @@ class Hold:
     @contextlib.contextmanager
     def calling(self, brain: str | None) -> Iterator[None]:
         """While a call of ``brain`` runs: its hold does not end, and its lease starts again at both ends."""
-        self.touch(brain)
-        self._calling.append(brain)
+        self.enter(brain)
         try:
             yield
         finally:
-            self._calling.pop()
-            self.touch(brain)
+            self.leave(brain)
+
+    def enter(self, brain: str | None) -> None:
+        """A call of ``brain`` starts (`calling` without a generator, for the server's hot path); pair it
+        with `leave` in a ``finally``."""
+        self.touch(brain)
+        self._calling.append(brain)
+
+    def leave(self, brain: str | None) -> None:
+        """The call `enter` started has ended."""
+        self._calling.pop()
+        self.touch(brain)
 
     def touch(self, brain: str | None) -> None:
         """A call from ``brain`` (or one of its calls still running): if it holds the world, its lease

@@ -56,6 +56,8 @@ _log = logging.getLogger("dynabrain.bridge")
 MAX_FORKS = 16
 URGENT = p.READ_ONLY | {"stop"}
 """Calls answered between two slices of a long tick, and before the queued calls."""
+_STEP_CALLS = frozenset({"tick", "read"})
+"""Calls `WorldService.step_frame` may answer (a one-step tick with a view, a read)."""
 
 
 class _RestartedError(DynabrainError):
@@ -366,22 +368,31 @@ class BridgeServer:
                                   f"{env.instance}; the world's state is new (call reattach() to go on with it)")
         if served.closed:
             raise WorldClosedError(f"world {served.name!r} is closed")
-        if served.owner is not None and env.brain != served.owner:
+        brain = env.brain
+        if served.owner is not None and brain != served.owner:
             raise BusyError(f"world {served.name!r} is a fork owned by brain {served.owner!r}")
-        is_main = served is self.main
-        if is_main:
-            self.hold.check(call, env.brain)
+        hold = self.hold if served is self.main else None
+        if call in _STEP_CALLS and (hold is None or not hold.held):
+            # the lock-step hot path: one tick (no slices, so no `_Ticking` anyone could see) and a frame;
+            # no hold to check or renew. None: not that simple, the general way below runs it.
+            frame = served.service.step_frame(args)
+            if frame is not None:
+                return frame
+        if hold is not None:
+            hold.check(call, brain)
+            hold.enter(brain)
         handler = self._handlers.get(call)  # a server call; otherwise the world's
-        ticking = _Ticking(served, env.brain, args.n) if call == "tick" else None
+        ticking = call == "tick"
         outer = self._ticking
-        with self.hold.calling(env.brain) if is_main else contextlib.nullcontext():
-            if ticking is not None:
-                self._ticking = ticking
-            try:
-                return handler(served, env, args) if handler is not None else served.service.call(call, args)
-            finally:
-                if ticking is not None:
-                    self._ticking = outer
+        if ticking:
+            self._ticking = _Ticking(served, brain, args.n)
+        try:
+            return handler(served, env, args) if handler is not None else served.service.call(call, args)
+        finally:
+            if ticking:
+                self._ticking = outer
+            if hold is not None:
+                hold.leave(brain)
 
     # -- holds ----------------------------------------------------------------------------------------------
     def do_acquire(self, served: _Served, env: p.Envelope, args: p.AcquireArgs) -> dict[str, Any]:
