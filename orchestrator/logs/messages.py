@@ -163,6 +163,6 @@ class Failed(NamedTuple):
 
 
 class Finished(NamedTuple):
-    """The file is complete: what was written (messages, chunks, bytes, writer_cpu_s)."""
+    """The file is complete: what was written and the writer's CPU time (`logs.sink.NOTHING_WRITTEN`)."""
 
     stats: dict[str, float]

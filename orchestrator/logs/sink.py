@@ -89,7 +89,11 @@ START_TIMEOUT_S = 60.0
 """How long the child writer may take to start (it imports numpy; on a busy machine that is slow)."""
 FINISH_TIMEOUT_S = 300.0
 """How long closing waits for a child writer to write what it was handed."""
-NOTHING_WRITTEN = {"messages": 0, "chunks": 0, "bytes": 0, "writer_cpu_s": 0.0, "out_of_order": 0}
+NOTHING_WRITTEN = {"messages": 0, "chunks": 0, "bytes": 0, "writer_cpu_s": 0.0, "encode_cpu_s": 0.0,
+                   "compress_cpu_s": 0.0, "out_of_order": 0}
+"""A log's statistics (`LogSink.finish`): ``writer_cpu_s`` is the writer's CPU time (the child process's
+whole, or the writer thread's), ``encode_cpu_s`` and ``compress_cpu_s`` the parts of it spent encoding
+rows into messages and compressing chunks."""
 LOG_SCHEMA = "foxglove.Log"
 
 
@@ -122,6 +126,10 @@ class LogSink:
         self.imagined_codecs: dict[tuple, BusCodec] = {}  # by the signals' (name, shape, unit)
         self.imagined_poses: dict[tuple[str, ...], PoseCodec] = {}
         self.ros2 = Ros2Rows(self) if ros2 else None
+        self.encode_cpu_s = 0.0
+        """CPU time spent in `rows` (encoding and adding messages; the chunks it finishes are compressed on
+        the writer's thread, `McapWriter.compress_cpu_s`, which is part of this with ``writer="thread"``,
+        where `rows` runs on that thread)."""
         self.events_channel()
 
     # -- calls ------------------------------------------------------------------------------------------
@@ -155,6 +163,14 @@ class LogSink:
         """Encode rows of consecutive ticks (the first is ``first``; one layout, epoch and fate) into
         ``/bus``, ``/tf`` and ``/scene`` messages, and write them, with the held messages whose time has
         come, as one group merged by log time."""
+        t0 = time.thread_time()
+        try:
+            self._rows(key, rows, extra, first, epoch, discarded, scenes)
+        finally:
+            self.encode_cpu_s += time.thread_time() - t0
+
+    def _rows(self, key: int, rows: np.ndarray, extra: np.ndarray | None, first: int, epoch: int,
+              discarded: bool, scenes: Sequence[tuple[int, bytes]]) -> None:
         codec, cols, missing = self.layouts[key]
         prefix, dt, origin = DISCARDED if discarded else "", self.dt, self.origin
         n = len(rows)
@@ -264,7 +280,7 @@ class LogSink:
         w.call(lambda: w.add_group(self._due(None)))  # after the jobs handed over before (`ThreadSink`)
         w.finish()
         return {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written, "writer_cpu_s": w.thread_cpu_s,
-                "out_of_order": w.out_of_order}
+                "encode_cpu_s": self.encode_cpu_s, "compress_cpu_s": w.compress_cpu_s, "out_of_order": w.out_of_order}
 
     # -- channels ---------------------------------------------------------------------------------------
     def _channel(self, topic: str, make: Callable[[], int], key: Hashable = 0) -> int:
@@ -548,7 +564,8 @@ class ThreadSink:
     def stats(self) -> dict[str, float]:
         w = self._writer
         return self._stats or {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written,
-                               "writer_cpu_s": w.thread_cpu_s, "out_of_order": w.out_of_order}
+                               "writer_cpu_s": w.thread_cpu_s, "encode_cpu_s": self._sink.encode_cpu_s,
+                               "compress_cpu_s": w.compress_cpu_s, "out_of_order": w.out_of_order}
 
 
 class ProcessSink:

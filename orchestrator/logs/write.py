@@ -178,6 +178,8 @@ class McapWriter:
         self._last_time = 0
         self.thread_cpu_s = 0.0
         """CPU time the writing thread has spent (compressing and writing)."""
+        self.compress_cpu_s = 0.0
+        """Of which compressing chunks."""
         self._t_min: int | None = None
         self._t_max = 0
         self._spare: queue.LifoQueue[_Chunk] = queue.LifoQueue()  # the buffer freed last is reused first: warm
@@ -403,7 +405,9 @@ class McapWriter:
         size, t_min, t_max, index = chunk.pos, chunk.t_min or 0, chunk.t_max, chunk.index
         try:
             raw = memoryview(chunk.buf)[:size]
+            t0 = time.thread_time()
             packed = self._compress(raw)
+            self.compress_cpu_s += time.thread_time() - t0
             crc = zlib.crc32(raw)
             del raw
         finally:
