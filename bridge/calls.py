@@ -213,8 +213,8 @@ class WorldService:
         self.world.backtick(a.n)
 
     # -- scene edits ----------------------------------------------------------------------------------------
-    def do_make(self, a: p.ObjectsArgs) -> Any:
-        self.world.make(a.objects)
+    def do_make(self, a: p.MakeArgs) -> Any:
+        self.world.make(a.objects, others=a.others)
         return list(self.world.core.selection) if self.world.core is not None else []
 
     def do_make_joint(self, a: p.MakeJointArgs) -> str:

@@ -297,8 +297,11 @@ class BrainClient:
         ``stopped`` in the reply says how far that tick got, or is None."""
         return self.call("stop")
 
-    def make(self, objects: Sequence[str] | str) -> list[str]:
-        return self.call("make", objects=[objects] if isinstance(objects, str) else list(objects))
+    def make(self, objects: Sequence[str] | str, others: str = "frozen") -> list[str]:
+        """Simulate only ``objects``; ``others``: ``frozen`` (static obstacles) or ``absent`` (out of the
+        simulation). Returns the selection."""
+        extra = {} if others == "frozen" else {"others": others}
+        return self.call("make", objects=[objects] if isinstance(objects, str) else list(objects), **extra)
 
     def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
                    axis: Sequence[float | str] | None = None, anchor: Sequence[float | str] | None = None) -> str:

@@ -130,6 +130,12 @@ class ObjectsArgs(_Strict):
     objects: Names
 
 
+class MakeArgs(_Strict):
+    objects: Names
+    others: Literal["frozen", "absent"] = "frozen"
+    """What becomes of the objects not selected: frozen where they stand, or out of the simulation."""
+
+
 class MakeJointArgs(_Strict):
     a: Name
     b: Name
@@ -322,7 +328,8 @@ TABLE: dict[str, Call] = {
                   "`{running, realtime, until_tick}`", server=True),
     "stop": Call(NoArgs, "", "`{running: false, error, stopped}`: ends the loop and a `tick` running on this world "
                  "(`stopped`: `{brain, ticks_done, ticks_asked}` of that tick, or null)", server=True),
-    "make": Call(ObjectsArgs, "`objects` (names or glob patterns)", "the selection"),
+    "make": Call(MakeArgs, "`objects` (names or glob patterns), `others` (`frozen` (default): the others stay as "
+                 "static obstacles; `absent`: out of the simulation)", "the selection"),
     "make_joint": Call(MakeJointArgs, "`a`, `b`, `name` (optional), `kind` (`weld` (default), `hinge`, `slider`, "
                        "`ball`), `axis` [3] and `anchor` [3] (world frame, optional)", "the joint's name"),
     "remove_joint": Call(NameArgs, "`name`", ""),

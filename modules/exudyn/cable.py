@@ -105,6 +105,8 @@ def build(system: System, carrier: Carrier, start: Start) -> CableParts:
     if carrier.kind == "frozen_cable":
         coords = system.plan.frozen_cables[name].reshape(n + 1, 6)
         parts = CableParts(name, True, n, coords=coords)
+        if name in system.plan.absent:  # out of the simulation: no contact spheres
+            return parts
         item = xk.BodyItems(name, 0.0, n + 1, True, material, static=True)
         pinned = {i for i, target in zip((0, n), b.cable.attach, strict=True) if target is not None}
         for p in (p for i, p in enumerate(coords[:, :3]) if i not in pinned):

@@ -5,6 +5,8 @@ The edits are the kernel's `Edits` (immutable named tuples, so they compare, has
 are part of the core's state):
 
 - ``frozen``: one `FrozenObject` per frozen object: where everything stood when it froze;
+- ``absent``: the frozen objects out of the simulation (`make` with ``others="absent"``): their bodies stay
+  on the world carrier, where they stood, for their outputs, but get no contact geometry (`Plan.absent`);
 - ``welds``: one `Weld` per `make_joint`, a weld's ``data`` the pose of b in a's frame (7 values); the
   other kinds (hinge, slider, ball) are springs between carriers (`exudyn.joints`);
 - ``groups``: sorted tuples of bodies that do not collide with one another (`no_collision`).
@@ -57,6 +59,9 @@ class Plan:
     groups: tuple[tuple[str, ...], ...]
     joints: tuple = ()
     """The hinges, sliders and balls made at run time (`Weld`s): springs between carriers (`exudyn.joints`)."""
+    absent: frozenset[str] = frozenset()
+    """The bodies of absent objects (`Edits.absent`): on the world carrier for their outputs (where they
+    stood), without contact geometry."""
 
     @property
     def world(self) -> Carrier:
@@ -99,8 +104,9 @@ def make_plan(top: Topology, edits: Edits) -> Plan:
     for n in top.bodies:
         if carriers.get(n) is not None and carriers[n].kind == "link":
             trees.setdefault(top.tree_of[n], []).append(n)
+    absent = frozenset(b for entry in edits.frozen if entry.object in edits.absent for b, _x in entry.bodies)
     return Plan(carriers, carrier_of, trees, frozen_joints, frozen_cables, tuple(edits.groups),
-                tuple(w for w in edits.welds if w.kind != "weld"))
+                tuple(w for w in edits.welds if w.kind != "weld"), absent)
 
 
 def _move(carriers: dict[str, Carrier], carrier_of: dict[str, str], body: str, dest: str, rel: geo.Pose) -> None:

@@ -157,7 +157,8 @@ class System(Outputs, Inputs):
         if c.kind == "world":
             for body, x in c.members.items():
                 self.frames[body] = Frame("world", 0, x)
-                self._items(body, "world", x, 0.0, self.ground, None)
+                if body not in self.plan.absent:  # (an absent body: no contact geometry, nothing to compute)
+                    self._items(body, "world", x, 0.0, self.ground, None)
         elif c.kind == "free":
             self._free(c, start)
         elif c.kind == "link":

@@ -185,8 +185,10 @@ class CompiledScene:
         self.body_id = {model.body(i).name: i for i in range(1, model.nbody)}  # body name -> MuJoCo id
         # joint name -> where its values lie in qpos and qvel
         self.joint_slices = {model.joint(j).name: ms.joint_slice(model, j) for j in range(model.njnt)}
-        # the equalities of the joints made at run time
-        self.weld_ids = np.array([model.equality(e).id for w in edits.welds for e in ms.made_equalities(w)], dtype=int)
+        # the equalities of the joints made at run time (those between absent bodies are not in the model)
+        gone = {b.name for f in edits.frozen if f.object in edits.absent for b in f.bodies}
+        self.weld_ids = np.array([model.equality(e).id for w in edits.welds if w.a not in gone
+                                  for e in ms.made_equalities(w)], dtype=int)
         owners: dict[str, list[int]] = {}  # body -> its geoms (a primitive's geom is named as its body)
         for g in range(model.ngeom):
             name = model.geom(g).name
@@ -775,7 +777,8 @@ class MujocoCore(EditedCore):
             raise ms.fail(self.name, f"body {body!r} has no free joint; place moves free bodies")
         joint = next((j for j in lay.body_joints[body] if j in s.joint_slices and s.joint_slices[j].nq == 7), None)
         if joint is None:
-            raise ms.fail(self.name, f"body {body!r} is frozen; select its object with make() first")
+            state = "absent" if body not in s.body_id else "frozen"
+            raise ms.fail(self.name, f"body {body!r} is {state}; select its object with make() first")
         p = np.asarray(pos, dtype=np.float64)
         q = np.asarray(s.qpos[s.joint_slices[joint].qpos_adr + 3:][:4] if quat is None else quat, dtype=np.float64)
         if p.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(p)) and np.linalg.norm(q) > 0):

@@ -168,14 +168,20 @@ class SpecSource:
         """The primitives of the scene with the bodies added and removed of ``scene_key``."""
         return scene_bodies(self.scene, scene_key)
 
-    def spec(self, bake: dict[str, tuple | None], scene_key: tuple = ((), ())) -> tuple[mujoco.MjSpec, set[str]]:
+    def spec(self, bake: dict[str, tuple | None], scene_key: tuple = ((), ()),
+             absent: dict[str, tuple[str, ...]] | None = None) -> tuple[mujoco.MjSpec, set[str]]:
         """A fresh spec with the bodies of ``bake`` frozen (pose in parent, or None: keep), and the
-        names of the joints that froze; with the bodies added and removed of ``scene_key``."""
+        names of the joints that froze; with the bodies added and removed of ``scene_key``, and without
+        the absent objects of ``absent`` (object -> its bodies): a primitive scene never builds them, a
+        model file's are deleted (`_leave_out`)."""
+        gone = {b for bodies in (absent or {}).values() for b in bodies}
         if self.base is None:
             first, self._first = self._first, None
-            if first is not None and not bake and scene_key == ((), ()):
+            if first is not None and not bake and scene_key == ((), ()) and not gone:
                 return first, set()
             bodies = self.bodies(scene_key)
+            if gone:
+                bodies = tuple(b for b in bodies if b.name not in gone)
             _check_bodies(self.core, len(bodies))
             spec = _finish(self.core, _spec_from_bodies(self.core, bodies, bake), self.scene, named=True)
             removed: set[str] = set()  # frozen bodies were built without joints
@@ -188,7 +194,7 @@ class SpecSource:
                     raise fail(self.core, f"{_where(b)}a body of that name exists already")
                 _add_body(self.core, spec, spec.worldbody, b, b.name in bake, bake.get(b.name),
                           degree=bool(spec.compiler.degree))
-            removed = set()
+            removed = _leave_out(self.core, spec, absent) if absent else set()
             for name, rel in bake.items():
                 removed |= _bake(spec.body(name), rel, spec)
         for name in bake:
@@ -203,6 +209,53 @@ class SpecSource:
             size = self.base_size + _bodies_size(edits.scene_key()[0])
         sliders = sum(w.kind == "slider" for w in edits.welds)  # a carriage body on a slide joint each
         return size + ModelSize(nbody=sliders, nv=sliders, neq=2 * len(edits.welds))
+
+
+def _leave_out(core: str, spec: mujoco.MjSpec, absent: dict[str, tuple[str, ...]]) -> set[str]:
+    """Delete the absent objects' bodies from a model file's spec; the names of the joints that went
+    with them. An object that something else in the model refers to (an actuator, a sensor, an equality,
+    a tendon, a contact pair or exclusion, a camera or light that tracks it) is refused, naming it and
+    what refers to it: deleting it would break that (MuJoCo deletes what refers to a deleted element
+    silently, or fails to compile), and freezing it (``others="frozen"``) keeps it whole."""
+    joints: set[str] = set()
+    for obj, names in absent.items():
+        bodies = [spec.body(n) for n in names]
+        mine = set(names)  # the names of the object's bodies, joints, geoms and sites
+        for b in bodies:
+            mine |= {x.name for kind in (b.joints, b.geoms, b.sites, b.cameras, b.lights) for x in kind}
+        refs = [f"{kind} {x.name!r}" for kind, x, targets in _references(spec)
+                if mine & targets and not (kind in ("camera", "light") and x.name in mine)]
+        if refs:
+            raise fail(core, f"make(), field others: 'absent' cannot take object {obj!r} out of the model file: "
+                       f"{', '.join(refs[:6])}{', ...' if len(refs) > 6 else ''} refer{'s' if len(refs) == 1 else ''} "
+                       "to it; select it, or make with others='frozen' (it stays as a static obstacle)")
+        for b in bodies:
+            joints |= {j.name for j in b.joints}
+        spec.delete(bodies[0])  # the object's top body, with its subtree
+    for key in list(spec.keys):  # a keyframe's qpos has the deleted joints' values
+        spec.delete(key)
+    return joints
+
+
+def _references(spec: mujoco.MjSpec):
+    """(kind, element, names it refers to) for what can refer to bodies, joints, geoms and sites."""
+    for a in spec.actuators:
+        yield "actuator", a, {a.target, getattr(a, "refsite", "") or ""} - {""}
+    for x in spec.sensors:
+        yield "sensor", x, {x.objname, getattr(x, "refname", "") or ""} - {""}
+    for e in spec.equalities:
+        yield "equality", e, {e.name1, e.name2} - {""}
+    for t in spec.tendons:
+        path = t.path
+        yield "tendon", t, {w.target.name for w in (path[i] for i in range(len(path))) if w.target is not None}
+    for p in spec.pairs:
+        yield "contact pair", p, {p.geomname1, p.geomname2} - {""}
+    for x in spec.excludes:
+        yield "contact exclusion", x, {x.bodyname1, x.bodyname2} - {""}
+    for kind, items in (("camera", spec.cameras), ("light", spec.lights)):
+        for c in items:
+            if c.targetbody:
+                yield kind, c, {c.targetbody}
 
 
 def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec, *, named: bool = False) -> mujoco.MjSpec:
@@ -475,13 +528,18 @@ class FrozenObject(NamedTuple):
 
 def build_structure(core: str, source: SpecSource, edits: Edits) -> tuple[mujoco.MjModel, tuple[str, ...]]:
     """Compile the structure ``edits``; return it and its moving bodies."""
-    spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen for b in entry.bodies},
-                                edits.scene_key())
+    absent = set(edits.absent)
+    spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen if entry.object not in absent
+                                 for b in entry.bodies}, edits.scene_key(),
+                                {e.object: tuple(b.name for b in e.bodies) for e in edits.frozen if e.object in absent})
     _size_arena(spec, source.size(edits))
     if removed:
         _prune(spec, removed)
-    anchors = _made_joints(spec, edits.welds)
-    for pair in _exclusions(spec, edits.groups):
+    gone = {b.name for e in edits.frozen if e.object in absent for b in e.bodies}
+    welds = tuple(w for w in edits.welds if w.a not in gone)  # (both sides are absent, or neither: `make`)
+    anchors = _made_joints(spec, welds)
+    groups = tuple(g for g in (tuple(n for n in grp if n not in gone) for grp in edits.groups) if len(g) > 1)
+    for pair in _exclusions(spec, groups):
         spec.add_exclude(bodyname1=pair[0], bodyname2=pair[1])
     movers = _moving_bodies(spec)
     for kind, tag in ((mujoco.mjtSensor.mjSENS_FRAMELINVEL, "lin"),

@@ -274,6 +274,10 @@ class Edits(NamedTuple):
     materials: tuple[Material, ...] = ()
     """The bodies whose friction or restitution was set at run time (`PhysicsCore.set_material`),
     sorted by body: their own coefficients from then on."""
+    absent: tuple[str, ...] = ()
+    """The frozen objects that are out of the simulation (`PhysicsCore.make` with ``others="absent"``), in
+    object order: no geometry, no contacts, nothing computed; their entries in ``frozen`` say where they
+    stood when they left (their outputs hold there, and they come back there, at rest)."""
 
     def scene_key(self) -> tuple:
         """What decides the core's ports: the bodies added and removed."""
@@ -306,6 +310,10 @@ def scene_bodies(scene: SceneSpec, scene_key: tuple) -> tuple[BodySpec, ...]:
 
 KEEP: Any = type("Keep", (), {"__repr__": lambda self: "KEEP"})()
 """What `PhysicsCore.set_material` takes for a coefficient it should leave as it is."""
+
+MAKE_OTHERS = ("frozen", "absent")
+"""What `PhysicsCore.make` does with the objects it does not select: ``frozen`` (the default) keeps each where
+it stands as a static obstacle (drawn, collided with); ``absent`` takes them out of the simulation."""
 
 NO_EDITS = Edits()
 """The structure of a scene as it was written: nothing frozen, no weld, no collision filter."""
@@ -355,11 +363,23 @@ class PhysicsCore(Module):
     @property
     @abstractmethod
     def selection(self) -> tuple[str, ...]:
-        """The objects being simulated; the others are frozen where they stand (and still drawn)."""
+        """The objects being simulated; the others are frozen where they stand (and still drawn), or absent."""
+
+    @property
+    def absent(self) -> tuple[str, ...]:
+        """The objects out of the simulation (`make` with ``others="absent"``); none by default."""
+        return ()
 
     @abstractmethod
-    def make(self, objects: Sequence[str]) -> None:
-        """Simulate only ``objects``; freeze every other object at its current pose."""
+    def make(self, objects: Sequence[str], others: str = "frozen") -> None:
+        """Simulate only ``objects`` (the paper's d-make). ``others`` (`MAKE_OTHERS`) says what becomes of
+        every other object: ``"frozen"`` keeps it where it stands as a static obstacle (its geometry stays:
+        moving bodies collide with it, and an engine still pays a little per geom); ``"absent"`` takes it
+        out of the simulation (no geometry, no contacts, nothing computed: the step costs what a scene of
+        only the selected objects costs). Either way its output ports hold where it stood, and selecting
+        it again later brings it back there, at rest; ports do not change, so connections stay. Static
+        objects (a floor) are objects too: an absent floor holds nothing up. A joint made at run time
+        (`make_joint`) between an object that would be absent and one that stays is refused, naming it."""
 
     @abstractmethod
     def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
@@ -506,11 +526,36 @@ class EditedCore(PhysicsCore):
         frozen = {entry.object for entry in self._edits.frozen}
         return tuple(o for o in self.objects() if o not in frozen)
 
-    def make(self, objects: Sequence[str]) -> None:
+    @property
+    def absent(self) -> tuple[str, ...]:
+        return self._edits.absent
+
+    def make(self, objects: Sequence[str], others: str = "frozen") -> None:
+        if others not in MAKE_OTHERS:
+            raise self.fail(f"make(), field others: unknown mode {others!r}" + did_you_mean(str(others), MAKE_OTHERS)
+                            + f"; one of: {', '.join(MAKE_OTHERS)}")
         chosen = self._objects(objects)
         kept = {entry.object: entry for entry in self._edits.frozen}
         entries = tuple(kept.get(o) or self._freeze_entry(o) for o in self.objects() if o not in chosen)
-        self._edit(self._edits._replace(frozen=entries))
+        absent = tuple(e.object for e in entries) if others == "absent" else ()
+        if absent:
+            self._check_absent(set(absent))
+        self._edit(self._edits._replace(frozen=entries, absent=absent))
+
+    def _check_absent(self, absent: set[str]) -> None:
+        """Refuse a selection that would leave a joint made at run time with one side absent."""
+        def top(body: str) -> str:
+            while self._parent(body) is not None:
+                body = self._parent(body)
+            return body
+
+        for w in self._edits.welds:
+            gone = [top(b) in absent for b in (w.a, w.b)]
+            if gone[0] != gone[1]:
+                out, stays = (w.a, w.b) if gone[0] else (w.b, w.a)
+                raise self.fail(f"make(), field others: 'absent' would take {top(out)!r} out of the simulation, "
+                                f"but joint {w.name!r} (make_joint) holds it to {stays!r}, which stays; select both, "
+                                "or remove_joint first")
 
     def _objects(self, objects: Sequence[str] | str) -> set[str]:
         known = self.objects()
@@ -532,6 +577,13 @@ class EditedCore(PhysicsCore):
 
         self._row(a)
         self._row(b)
+        for body in (a, b) if self._edits.absent else ():
+            top = body
+            while self._parent(top) is not None:
+                top = self._parent(top)
+            if top in self._edits.absent:
+                raise self.fail(f"make_joint({a!r}, {b!r}): {body!r} is out of the simulation (object {top!r} is "
+                                "absent); select it with make() first")
         if a == b:
             raise self.fail(f"make_joint: a joint between a body and itself ({a!r}); it needs two different bodies")
         try:
@@ -599,7 +651,7 @@ class EditedCore(PhysicsCore):
         groups = tuple(g for g in (tuple(n for n in grp if n not in gone) for grp in e.groups) if len(g) > 1)
         self._edit(e._replace(
             added=added, removed=removed, groups=tuple(dict.fromkeys(groups)),
-            frozen=tuple(f for f in e.frozen if f.object != name),
+            frozen=tuple(f for f in e.frozen if f.object != name), absent=tuple(o for o in e.absent if o != name),
             welds=tuple(w for w in e.welds if w.a not in gone and w.b not in gone),
             materials=tuple(m for m in e.materials if m.body not in gone)))
 

@@ -37,7 +37,7 @@ import numpy as np
 from . import portable
 from .bodies import BodySpecError
 from .compiled import CompiledTick, PlainTick, compiled_by_default, state_saver
-from .core import KEEP, BodySpec, PhysicsCore
+from .core import KEEP, MAKE_OTHERS, BodySpec, PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
 from .module import Module, SetupContext
@@ -536,14 +536,25 @@ class World:
             rec.module.bind()
 
     # -- scene edits (delegated to the core; part of its state) ----------------------------------------
-    def make(self, objects: Iterable[str]) -> None:
-        """Simulate only ``objects``; every other object is frozen where it stands (d-make).
-        Names may be glob patterns (``box_*``)."""
+    def make(self, objects: Iterable[str], others: str = "frozen") -> None:
+        """Simulate only ``objects`` (d-make). Names may be glob patterns (``box_*``). ``others``: what
+        becomes of every other object: ``"frozen"`` (the default) keeps it where it stands as a static
+        obstacle; ``"absent"`` takes it out of the simulation (no geometry, no contacts: the step costs
+        what a scene of only ``objects`` costs; select a floor too, or nothing holds the objects up).
+        Either way its outputs hold where it stood and a later `make` that selects it brings it back
+        there, at rest (`PhysicsCore.make`). Part of history: a backtick across it undoes it. A bad mode
+        or name raises naming the field, and the world is left as it was."""
         with self._lock:
             core = self._require_core("make")
+            if others not in MAKE_OTHERS:
+                raise DynabrainError(f"make(), field others: unknown mode {others!r}"
+                                     + did_you_mean(str(others), MAKE_OTHERS) + f"; one of: {', '.join(MAKE_OTHERS)}")
             names = expand_names(_names(objects), core.objects(), "object", "make")
-            core.make(names)
-            self._edited("make", objects=names)
+            if others == "frozen":
+                core.make(names)  # (a core of another author may not take ``others``)
+            else:
+                core.make(names, others)
+            self._edited("make", objects=names, others=others)
 
     def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
                    axis: Sequence[Any] | None = None, anchor: Sequence[Any] | None = None) -> str:

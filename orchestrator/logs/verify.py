@@ -300,8 +300,10 @@ def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".") -> None:
         world.remove_module(d["module"])
     elif kind in ("param", "set"):
         world.set(d["name"], d["value"])
-    elif kind in ("make", "no_collision"):
-        getattr(world, kind)(d["objects"])
+    elif kind == "make":  # (a recording from before ``others`` was recorded froze the others)
+        world.make(d["objects"], others=d.get("others", "frozen"))
+    elif kind == "no_collision":
+        world.no_collision(d["objects"])
     elif kind == "make_joint":
         world.make_joint(d["a"], d["b"], name=d.get("joint"), kind=d.get("kind", "weld"), axis=d.get("axis"),
                          anchor=d.get("anchor"))

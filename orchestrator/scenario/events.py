@@ -1,7 +1,8 @@
 """Scenario events: edits the world makes at given times.
 
 ``{at: 1s, set: {core.restitution: 0.8}}``, ``add_body: {box: {name: b, size: [...], ...}}`` (a body,
-written as a scene item), ``add: {module...}``, ``remove: name``, ``make: [objects]``,
+written as a scene item), ``add: {module...}``, ``remove: name``, ``make: [objects]`` (the others frozen)
+or ``make: {objects: [...], others: absent}`` (the others out of the simulation: `World.make`),
 ``make_joint: [a, b]`` (a weld) or ``{a: x, b: y, kind: hinge, axis: [0, 1, 0], anchor: [0, 0, 1m]}``,
 ``no_collision: [objects]``, ``place: {body: [x, y, z]}``, ``connect: [src, dst]``, ``disconnect: dst``,
 ``remove_body: name``. ``set`` also takes a body's own ``core.<body>.friction`` and ``.restitution``.
@@ -21,6 +22,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from ..kernel.bodies import joint_kind
+from ..kernel.core import MAKE_OTHERS
 from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import format_duration, parse_duration_ns
@@ -43,7 +45,7 @@ class EventCfg(BaseModel):
     set: dict[str, Any] | None = None
     add: ModuleCfgRef | None = None
     remove: str | None = None
-    make: list[str] | None = None
+    make: list[str] | dict[str, Any] | None = None
     make_joint: list[str] | dict[str, Any] | None = None
     no_collision: list[str] | None = None
     place: dict[str, Any] | None = None
@@ -259,6 +261,10 @@ def _objects(call: str):
         kind = "object" if call == "make" else "body"
         if call == "make_joint":
             return _make_joint(value, world, builder, path, known)
+        others = "frozen"
+        if call == "make" and isinstance(value, dict):
+            value, others = _make_fields(value, builder, path)
+            path = (*path, "objects")
         chosen: list[str] = []
         for i, name in enumerate(value):
             try:
@@ -269,9 +275,34 @@ def _objects(call: str):
             timeline.selection = set(chosen)
         elif call == "no_collision" and len(chosen) < 2 and len(chosen) == len(value):
             builder.report(path, f"no_collision needs at least two bodies, got {short(value)}")
+        if call == "make" and others != "frozen":
+            return lambda w: w.make(value, others=others)
         return lambda w: getattr(w, call)(value)
 
     return check
+
+
+_MAKE_KEYS = ("objects", "others")
+
+
+def _make_fields(value: dict, builder: _Builder, path: Path) -> tuple[list[str], str]:
+    """``make: {objects: [...], others: frozen | absent}``: the names and the mode, each checked."""
+    for key in value:
+        if key not in _MAKE_KEYS:
+            builder.report((*path, key), f"unknown key {key!r}" + did_you_mean(str(key), _MAKE_KEYS)
+                           + f"; make takes {', '.join(_MAKE_KEYS)}")
+    objects = value.get("objects")
+    if isinstance(objects, str):
+        objects = [objects]
+    if not isinstance(objects, list) or not all(isinstance(o, str) for o in objects):
+        builder.report((*path, "objects"), f"make: objects is a list of object names, got {short(objects)}")
+        objects = []
+    others = value.get("others", "frozen")
+    if others not in MAKE_OTHERS:
+        builder.report((*path, "others"), f"make: unknown mode {others!r}" + did_you_mean(str(others), MAKE_OTHERS)
+                       + f"; one of: {', '.join(MAKE_OTHERS)}")
+        others = "frozen"
+    return objects, others
 
 
 _JOINT_KEYS = ("a", "b", "kind", "axis", "anchor", "name")
