@@ -104,6 +104,11 @@ def _empty(index: slice | np.ndarray) -> bool:
     return index.stop <= index.start if isinstance(index, slice) else not len(index)
 
 
+def _positions(index: slice | np.ndarray) -> np.ndarray:
+    """The flat positions an index (a slice or an index array) names, as an index array."""
+    return np.arange(index.start, index.stop) if isinstance(index, slice) else index
+
+
 def _move(dst: np.ndarray, di, src: np.ndarray, si) -> tuple:
     if isinstance(di, slice) and isinstance(si, slice) and _plain(dst) and _plain(src):
         return (memoryview(dst), di, memoryview(src), si)
@@ -655,7 +660,8 @@ class MujocoCore(EditedCore):
         """The copies `step` makes from the inputs and `_write_outputs` into the outputs, as
         (dst, index, src, index). Copies of neighbouring runs of one array into neighbouring outputs
         are merged, and where both indexes are slices the copy goes through memoryviews (a memcpy,
-        ~4x cheaper than a numpy slice copy)."""
+        ~4x cheaper than a numpy slice copy); neighbouring runs of one array into scattered outputs (the
+        bodies of a selection: their rows are apart) become one copy through an index array."""
         ins = []
         if s.n_joints:
             ins.append((s.qfrc_applied, s.joint_dof_adr, self._force, s.joint_rows))
@@ -676,9 +682,13 @@ class MujocoCore(EditedCore):
                 continue
             dst = slice(at + rows.start, at + rows.stop) if isinstance(rows, slice) else rows + at
             last = outs[-1] if outs else None
-            runs = last is not None and all(isinstance(x, slice) for x in (last[0], last[2], dst, index))
-            if runs and last[1] is src and last[0].stop == dst.start and last[2].stop == index.start:
+            follows = (last is not None and last[1] is src and isinstance(last[2], slice) and isinstance(index, slice)
+                       and last[2].stop == index.start)  # the next run of the same source array
+            if follows and isinstance(last[0], slice) and isinstance(dst, slice) and last[0].stop == dst.start:
                 last[0], last[2] = slice(last[0].start, dst.stop), slice(last[2].start, index.stop)
+            elif follows:  # scattered rows (a selection): one gather into both blocks, not two
+                last[0] = np.concatenate([_positions(last[0]), _positions(dst)])
+                last[2] = slice(last[2].start, index.stop)
             else:
                 outs.append([dst, src, index])
         return [_move(*p) for p in ins], [_move(self._out, dst, src, index) for dst, src, index in outs]
