@@ -45,6 +45,12 @@ class Settings:
     lease_ms: int | None = None
     """How long a silent peer is kept before it counts as gone (Zenoh's default is 10 s)."""
     connect_timeout_ms: int = 2000
+    shared_memory: bool | None = None
+    """Zenoh's shared-memory transport between processes on one host: None leaves Zenoh's default (on in
+    1.x: a message of `shm_threshold` bytes or more goes through shared memory when both ends can),
+    False turns it off, True turns it on."""
+    shm_threshold: int | None = None
+    """Smallest message (bytes) the transport moves to shared memory (Zenoh's default: 3072)."""
     extra: dict[str, object] = field(default_factory=dict)
     """Further Zenoh configuration keys (``"transport/link/rx/max_message_size": 16777216``)."""
 
@@ -77,6 +83,10 @@ def build_config(s: Settings) -> zenoh.Config:
     if s.user is not None:
         _put(conf, "transport/auth/usrpwd/user", s.user)
         _put(conf, "transport/auth/usrpwd/password", s.password or "")
+    if s.shared_memory is not None:
+        _put(conf, "transport/shared_memory/enabled", bool(s.shared_memory))
+    if s.shm_threshold is not None:
+        _put(conf, "transport/shared_memory/transport_optimization/message_size_threshold", int(s.shm_threshold))
     if s.lease_ms is not None:
         _put(conf, "transport/link/tx/lease", int(s.lease_ms))
     for key, value in s.extra.items():
