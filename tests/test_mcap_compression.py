@@ -81,3 +81,35 @@ def test_bus_messages_written_into_used_memory_are_the_fresh_ones():
     assert np.array_equal(out, fresh)
     back, t, e = codec.decode(fresh)
     assert back.tobytes() == rows.tobytes() and list(t) == list(ticks) and list(e) == list(epochs)
+
+
+@pytest.mark.parametrize("compression, at", [("zstd", -1), ("zstd", -200), ("lz4", -200), ("none", -200)])
+def test_a_damaged_chunk_is_found_with_each_compression(tmp_path, compression, at):
+    """zstd chunks carry the frame's checksum of their content (their MCAP CRC is 0), the others a CRC:
+    a flipped bit in a chunk's data (``at``: from its end; -1 is the zstd checksum itself) loses that
+    chunk, which `log recover` reports, and keeps the others."""
+    from dynabrain.orchestrator.logs.recover import recover
+    from dynabrain.orchestrator.logs.scan import TruncatedLogError, scan
+
+    sc = load_scenario(SCENARIOS / "two_cubes.yaml")
+    world = sc.build()
+    path = tmp_path / "run.mcap"
+    McapLogger(path, compression=compression, chunk_bytes=40_000).attach(world, sc)
+    world.tick(600)
+    world.close()
+    with open(path, "rb") as fh:
+        chunks = make_reader(fh).get_summary().chunk_indexes
+    assert {c.compression for c in chunks} == {"" if compression == "none" else compression}
+    assert len(chunks) >= 4
+    data = bytearray(path.read_bytes())
+    crcs = {int.from_bytes(data[c.chunk_start_offset + 33:c.chunk_start_offset + 37], "little") for c in chunks}
+    assert (crcs == {0}) == (compression == "zstd")
+    second = chunks[1]
+    data[second.chunk_start_offset + second.chunk_length + at] ^= 0x01
+    (tmp_path / "bad.mcap").write_bytes(data)
+    with pytest.raises(TruncatedLogError):
+        list(scan(tmp_path / "bad.mcap"))
+    out, report = recover(tmp_path / "bad.mcap")
+    assert len(report.damaged) == 1
+    kept = {r.tick for r in iter_bus(out, read_index(out))}
+    assert 0 in kept and 600 in kept and len(kept) < 601

@@ -5,7 +5,8 @@ and tells, at the end, whether the file was complete. A file that stops in the m
 run that was killed, a copy cut short) or holds a damaged one raises `TruncatedLogError` in strict
 mode. In lenient mode (what `dynabrain log recover` uses) a damaged record is skipped: the scan
 resynchronises on the next valid chunk (a chunk record whose fields agree with each other and whose
-data decompresses to its size and CRC), as the official MCAP tools skip an invalid chunk, and goes on;
+data decompresses to its size and CRC, or, for zstd, with its frame's checksum: `logs.write`), as the
+official MCAP tools skip an invalid chunk, and goes on;
 a file cut short ends the scan. There, a record of an unknown opcode, or a message outside chunks in a
 chunked file, counts as damage too (reading out of step lands on such bytes). Every region skipped is
 reported (`ScanReport.damaged`). Since each chunk declares its own channels (`logs.write`), damage
@@ -275,7 +276,10 @@ def _chunk(body: bytes):
     elif compression == "lz4":
         import lz4.frame
 
-        data = lz4.frame.decompress(data)
+        try:
+            data = lz4.frame.decompress(data)
+        except RuntimeError as exc:  # lz4's error for a damaged frame
+            raise ValueError(f"the chunk's lz4 data does not decompress: {exc}") from None
     elif compression:
         raise ValueError(f"unknown compression {compression!r}")
     if len(data) != size or (crc and zlib.crc32(data) != crc):

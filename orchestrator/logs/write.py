@@ -11,7 +11,9 @@ lz4; or none) and written by a thread of the writer's own, so compression overla
 second core. On the humanoid's log (about 9.4 KB a tick before compression, mostly float64 bus values)
 zstd costs the most of the writer's CPU time: per tick and 4 MB chunk, level 1 14.5 us for a 2.58
 ratio, -1 12.3 us for 2.54, -2 11.1 us for 2.41, -3 10.3 us for 2.24, -5 9.5 us for 1.91; lz4 11.3 us
-for 1.97; a crc32 of the chunk 1.4 us (measured on this 2-core machine, ``bench/logging_cost.py``
+for 1.97; a crc32 of the chunk 1.3 us, so a zstd chunk carries zstd's own checksum of its content
+instead (0.3 us; the chunk's MCAP CRC is 0, which the spec reads as none; decompressing checks it), and
+lz4 and uncompressed chunks a CRC (measured on this 2-core machine, ``bench/logging_cost.py``
 prints the writer's whole time). A chunk goes to the file with one ``os.writev`` of its header, its
 compressed data and its message indexes (no copy of the compressed data).
 A caller can hand that thread whole jobs (`call`: encode a batch and add it, for instance): every
@@ -408,7 +410,9 @@ class McapWriter:
             t0 = time.thread_time()
             packed = self._compress(raw)
             self.compress_cpu_s += time.thread_time() - t0
-            crc = zlib.crc32(raw)
+            # a zstd frame carries a checksum of its content (xxh64: 0.3 us a humanoid tick where a crc32
+            # of the chunk costs 1.3), which decompressing checks: the chunk's CRC is then 0 ("none" in MCAP)
+            crc = 0 if self.compression == "zstd" else zlib.crc32(raw)
             del raw
         finally:
             self._spare.put(chunk)  # the buffer is free again (also when this failed)
@@ -490,7 +494,8 @@ class McapWriter:
         self.flush()
         self._jobs.join()
         self._check()
-        self._write(record(OP_DATA_END, struct.pack("<I", 0)))  # 0: no data-section CRC (chunks have theirs)
+        # 0: no data-section CRC (chunks have theirs: a CRC or zstd's checksum)
+        self._write(record(OP_DATA_END, struct.pack("<I", 0)))
         start = self._pos
         groups = [(OP_SCHEMA, list(self._schemas.values())), (OP_CHANNEL, list(self._channels.values())),
                   (OP_STATISTICS, [self._statistics()]), (OP_CHUNK_INDEX, self._chunk_indexes),
@@ -531,7 +536,7 @@ class McapWriter:
 
 def _compressor(compression: str, level: int) -> Callable[[memoryview | bytes], bytes]:
     if compression == "zstd":
-        return zstandard.ZstdCompressor(level=level).compress
+        return zstandard.ZstdCompressor(level=level, write_checksum=True).compress  # (see `_write_chunk`)
     if compression == "lz4":
         import lz4.frame
 
