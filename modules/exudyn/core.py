@@ -28,6 +28,9 @@ and `exudyn.outputs` for the Exudyn system, `exudyn.contact` and `exudyn.calibra
   bodies into one rigid body, exactly; a hinge, slider or ball made at run time is a stiff,
   critically damped spring between the two carriers (`exudyn.joints`); the joint ports, parameter
   names and queries are MuJoCo's;
+- `make` freezes the objects not selected onto the world carrier as static contact geometry; with
+  ``others="absent"`` they stay there for their outputs (where they stood) but get no contact geometry,
+  so nothing touches them and nothing is computed for them (`Plan.absent`);
 - bodies added or removed (`add_body`, `remove_body`) make another topology with other ports (a
   `TopView` per `Edits.scene_key`, kept for the core's life; `bind` takes the one whose ports it is
   bound to); a body's own friction is a friction material of its own, its own restitution the damping

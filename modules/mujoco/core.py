@@ -25,7 +25,8 @@ Choices (see also `mujoco.scene`):
   body, and the velocity-dependent half of the step is computed again (``mj_step1``, as after a
   parameter change). Neither is state (`STATE`): both come from the inputs, on the bus;
 - structural edits (`make`, `make_joint`, `no_collision`, `add_body`, `remove_body`) recompile the
-  model (`mujoco.scene`); each compiled model (a `CompiledScene`) is cached by its edits, so a
+  model (`mujoco.scene`; `make` with ``others="absent"`` leaves the others out of it, their outputs
+  holding where they stood, as a frozen body's do); each compiled model (a `CompiledScene`) is cached by its edits, so a
   rollback across an edit costs a dictionary look-up. The state is ``(edits, integration state
   array, sensor values)`` (see `STATE`);
 - bodies added or removed change the ports: each set of bodies (`Edits.scene_key`) has its layout and

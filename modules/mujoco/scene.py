@@ -6,7 +6,12 @@ Structures. Every structure is compiled from a fresh spec (`SpecSource`). A froz
 joints, gets the pose it had when it was frozen baked into its bodies, and is fused into the world
 (`mjs_fuseStatic`), so it costs no kinematics, no broad-phase box and no degrees of freedom; only its
 geoms stay, as static world geoms that moving bodies still collide with. Bodies that something refers to
-(a weld, an exclusion, a sensor) are not fused and stay as static bodies. The core maps every
+(a weld, an exclusion, a sensor) are not fused and stay as static bodies. An absent object (`make` with
+``others="absent"``, `Edits.absent`) is not in the model at all: a primitive scene never builds its
+bodies, a model file's are deleted (`_leave_out`: refused, naming what refers to them, when an actuator,
+sensor, equality, tendon, contact pair or exclusion, or a tracking camera or light does), so it costs
+nothing, where a frozen object's static geoms still cost MuJoCo per-geom kinematics and collision every
+step (195 frozen boxes: 16 us a step against 13 for 5 boxes alone). The core maps every
 compiled model back onto one fixed layout (the unedited model's bodies, joints, actuators and sensors),
 by name, so that its block ports keep their shapes across structures.
 
