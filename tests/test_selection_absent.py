@@ -212,3 +212,19 @@ def test_a_scenario_with_a_bad_make_is_refused_naming_the_field(tmp_path):
     (tmp_path / "s.yaml").write_text(SCENARIO.format(engine="mujoco", others="gone"))
     with pytest.raises(ScenarioError, match=r"others.*unknown mode 'gone'"):
         load_scenario(tmp_path / "s.yaml").build()
+
+
+@pytest.mark.parametrize("engine", ["mujoco", "exudyn"])
+def test_bodies_added_at_run_time_can_be_absent_and_removed_while_absent(engine):
+    w = world(engine)
+    w.tick(2)
+    w.add_body(name="extra", shape="box", size=[0.1] * 3, pos=[0, 0, 0.3], mass=0.1)
+    w.make(["floor", "drop"], others="absent")
+    assert w.core.absent == ("low", "far", "extra")
+    w.tick(100)
+    assert w.get("drop.pos")[2] < 0.3  # through both the low box and the extra one
+    assert np.array_equal(w.get("extra.pos"), [0, 0, 0.3])
+    w.remove_body("extra")
+    assert w.core.absent == ("low", "far")
+    w.tick(2)
+    w.close()
