@@ -415,8 +415,8 @@ class WorldService:
         """The view's values now, as a STATE frame (the caller holds the world lock)."""
         values = self._wv.bus().take(view.index)
         w = self.world
-        return frames.pack_header(frames.STATE, values.size, source=self.instance, seq=w.tick_count,
-                                  stamp=w.time_ns, aux=view.id) + values.astype("<f8", copy=False).tobytes()
+        return (frames.HEADER.pack(frames.MAGIC, frames.STATE, 0, self.instance, w.tick_count, w.time_ns, view.id,
+                                   values.size) + values.astype("<f8", copy=False).tobytes())
 
     def has_view(self, vid: int) -> bool:
         return vid in self._views

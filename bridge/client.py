@@ -438,7 +438,7 @@ class BrainClient:
             head = frames.state_header(data, view.id, view.size, self._instance)
             if head is not None:
                 self.last_tick = head[0]
-                return StateFrame(head[0], head[1], frames.values_of(data, view.size), view)
+                return StateFrame(head[0], head[1], np.frombuffer(data, "<f8", view.size, frames.HEADER_SIZE), view)
         return self._frame(self._decode(name, reply, self.timeout), view)
 
     def _frame(self, frame: frames.Frame, view: View) -> StateFrame:
