@@ -4,6 +4,9 @@ separate Python process on loopback, started and reaped with their output kept f
     with ServerProcess("bridge/arm.yaml") as server:
         with BrainClient("arm", connect=server.endpoint) as brain:
             brain.tick(10)
+
+`serving` is the same in this process (a `BridgeServer` on a world the test holds, a real Zenoh session
+on loopback), for tests that look at the world while a brain drives it.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from dynabrain.orchestrator.kernel.errors import DynabrainError
@@ -139,6 +142,24 @@ class EmulatorProcess(Process):
         args = ["-m", "dynabrain.orchestrator.cli", "robot-emulator", scenario, "--world", world,
                 "--connect", connect, *extra]
         super().__init__(args, ready="ready", **kw)
+
+
+@contextlib.contextmanager
+def serving(world: Any, name: str, timeout: float = 20.0) -> Iterator[tuple[Any, Any]]:
+    """(server, brain): ``world`` served in this process on a loopback port, and a `BrainClient` called
+    ``name`` connected to it; the server and the world are closed after."""
+    from .client import BrainClient
+    from .server import BridgeServer, ServeOptions
+    from .zenoh_io import Settings
+
+    server = BridgeServer(world, Settings(listen=["tcp/127.0.0.1:0"]), ServeOptions())
+    try:
+        server.open()
+        with BrainClient(name, connect=server.endpoints, timeout=timeout) as brain:
+            yield server, brain
+    finally:
+        server.close()
+        world.close()
 
 
 def wait_for(predicate: Callable[[], Any], timeout: float = 5.0, what: str = "condition",

@@ -11,10 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from dynabrain.bridge import BrainClient
 from dynabrain.bridge.errors import BadRequestError, WorldRefusedError
-from dynabrain.bridge.server import BridgeServer, ServeOptions
-from dynabrain.bridge.zenoh_io import Settings
+from dynabrain.bridge.testing import serving
 from dynabrain.orchestrator.scenario import load_world
 
 SCENE = """\
@@ -36,15 +34,8 @@ def made(world) -> dict[str, str]:
 def served(tmp_path_factory):
     path = tmp_path_factory.mktemp("bodies") / "grow.yaml"
     path.write_text(SCENE)
-    world = load_world(path)
-    server = BridgeServer(world, Settings(listen=["tcp/127.0.0.1:0"]), ServeOptions())
-    try:
-        server.open()
-        with BrainClient("grow", connect=server.endpoints, timeout=20) as brain:
-            yield server, brain
-    finally:
-        server.close()
-        world.close()
+    with serving(load_world(path), "grow") as both:
+        yield both
 
 
 def test_a_brain_adds_bodies_sets_a_material_makes_a_hinge_and_removes_a_body(served):
