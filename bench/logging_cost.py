@@ -21,7 +21,14 @@
 Runs alternate (no log, log, no log, log, ...) and the best of each is kept. Printed: the wall time,
 the stepping thread's CPU time (what logging costs the simulation when the writer has a core of its
 own) and the writer's CPU time (encoding, compression and writes: the child process's, or the writer
-thread's). Starting the writer process (about 0.15 s, in `attach`) is not in the figures. The load
+thread's); then where full logging's time goes, per tick: the stepping thread's extra CPU (the
+logger's own code, measured with the idle writer, and the rest: caches and memory shared with the
+writer process) and the writer process's CPU (encoding rows into messages, compressing chunks, the
+rest: writes, checksums, the pipe, the interpreter), also as a share of the simulation's CPU; and
+target 4's verdicts (full logging's share of the wall time, humanoid and two cubes). On 2 cores, when
+another process wants one, the writer's CPU (about 20 us a humanoid tick, 83% of the simulation's;
+12 of them zstd) shows in the wall time: the humanoid's 10% holds only with a core free for the
+writer. Starting the writer process (about 0.15 s, in `attach`) is not in the figures. The load
 average is printed before and after: other processes on the 2 cores take the writer's second core,
 and then its time shows in the wall figures.
 Run: ``.venv/bin/python bench/logging_cost.py`` (the issue calls it ``bench/logging.py``; that name
