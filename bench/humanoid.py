@@ -4,7 +4,7 @@ The world: the humanoid "kid" (23 motors, 29 DoF) standing on the earthquake flo
 with encoders, the servo (PD, torque limits, an angle-vector program), force/torque sensors at both
 ankles, an accelerometer, a gyro, the ZMP sensor (every 10 ms) and the moving floor, all through the
 kernel: the bus, the schedule, history on at the default depth (1000 ticks), twice: as a World keeps
-it by default (a keyframe every `KEYFRAMES` = 4 ticks, `World(keyframe_every=...)`: the ticks between
+it by default (a keyframe every `KEYFRAMES` = 2 ticks, `World(keyframe_every=...)`: the ticks between
 are stepped again when a backtick goes to one), and with a state saved every tick (``keyframe_every=1``).
 
 The baseline: one `mj_step` per tick of the same compiled model, with the same PD control, the same

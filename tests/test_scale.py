@@ -186,7 +186,7 @@ class Eye(Module):
 
 
 def test_a_world_built_in_python_is_refused_at_its_first_tick_and_when_it_grows():
-    world = World("w", history=1000, keyframe_every=1)  # a state every tick (the default keeps a quarter)
+    world = World("w", history=1000, keyframe_every=1)  # a state every tick (the default keeps about half)
     world.history.budget = 2**30
     world.add_module(Eye("eye", 64))  # 98 KiB a state: 96 MiB when full
     world.tick(2)
@@ -217,9 +217,9 @@ def test_a_camera_whose_history_would_not_fit_is_refused(tmp_path):
         modules:
           - {name: eye, python: dynabrain.modules.camera:Camera, targets: [cam], params: {width: 1024, height: 1024}}
     """)
-    (problem,) = _problems(path)  # keyframes every 4 ticks (the default): 252 states kept
+    (problem,) = _problems(path)  # keyframes every 2 ticks (the default): 502 states kept
     assert problem.field == "world.history"
-    assert "would hold 7.9 GiB when full (252 states" in problem.message
+    assert "would hold 15.7 GiB when full (502 states" in problem.message
     assert "the module 'eye' holds 32.0 MiB" in problem.message
     path.write_text(path.read_text().replace("history: 1000,", "history: 1000, keyframe_every: 1,"))
     (problem,) = _problems(path)  # a state every tick

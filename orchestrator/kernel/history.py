@@ -110,7 +110,7 @@ class History:
     The first state of each structure (`replace_top`: the world's first state after a change) is
     checked against it (`check`), so a history that would not fit is refused before it grows.
 
-    ``every``: keyframes. 1 (History's default; a `World` keeps one every 4 ticks unless told
+    ``every``: keyframes. 1 (History's default; a `World` keeps one every 2 ticks unless told
     otherwise): a state every tick. k > 1: a state every k ticks (at ticks
     that are multiples of k), and after every edit or event (the world pushes those whole); the ticks
     between hold only their number, and `restore_point` gives the keyframe before a tick and how many

@@ -58,8 +58,8 @@ from .suggest import did_you_mean
 from .units import NS_PER_S, format_duration, parse_duration_ns
 
 ScheduledAction = Callable[["World"], None]
-KEYFRAME_EVERY = 4
-"""History's default: a whole state every 4 ticks (`World`'s ``keyframe_every``)."""
+KEYFRAME_EVERY = 2
+"""History's default: a whole state every 2 ticks (`World`'s ``keyframe_every``)."""
 _IMAGINED_NAME = re.compile(r"[A-Za-z0-9_.-]{1,100}")
 
 
@@ -72,13 +72,15 @@ class World:
     environment decides: ``DYNABRAIN_COMPILED=0`` runs every such world plain, which debugs a whole
     program without editing it; unset or ``1``, generated. A fork keeps its world's choice.
 
-    ``keyframe_every``: history keeps a whole state every that many ticks (`KEYFRAME_EVERY`, 4, by
+    ``keyframe_every``: history keeps a whole state every that many ticks (`KEYFRAME_EVERY`, 2, by
     default) and after each edit or event, stepping the ticks between again when `backtick` goes to
     one (bit for bit: the steps are deterministic, as rollback requires); 1 keeps a state every tick.
-    The trade, measured on the humanoid (``bench/humanoid.py``, 2 ms): a state every tick costs about
-    2 us a tick more (the capture, and 1000 states' memory touched and freed), and a backtick(1) then
-    costs about 35 us instead of about 85 (up to 3 ticks stepped again). A world with a module that
-    cannot roll back keeps a state every tick. See `History` and the README. A fork keeps it.
+    The trade, measured (``bench/humanoid.py`` at 2 ms, ``bench/kernel.py``): a state every tick costs
+    the humanoid about 2 us a tick more than one every 4 ticks and 1 us more than one every 2 (the
+    capture, and 1000 states' memory touched and freed); a backtick(1) steps up to k - 1 ticks again:
+    on average half a tick with k = 2 (0.86 of a physics step on 200 boxes, against 0.38 with k = 1 and
+    1.9 with k = 4). A world with a module that cannot roll back keeps a state every tick. See
+    `History` and the README. A fork keeps it.
     """
 
     def __init__(self, name: str = "world", *, step: int | str = "2ms", seed: int = 0,

@@ -55,7 +55,7 @@ class WorldCfg(_Strict):
     seed: Annotated[int, Field(strict=True, ge=0, le=2**63 - 1)] = 0
     history: Annotated[int, Field(strict=True, ge=0)] = 1000
     """How many ticks `backtick` can go back."""
-    keyframe_every: Annotated[int, Field(strict=True, ge=1)] = 4
+    keyframe_every: Annotated[int, Field(strict=True, ge=1)] = 2
     """History keeps a whole state every this many ticks (and after each edit or event), and steps the
     ticks between again when a backtick goes to one: 1 keeps a state every tick (`World`'s docstring
     says what each costs)."""
