@@ -47,22 +47,21 @@ class Plan(ctypes.Structure):
 @functools.cache
 def helper() -> Callable[..., int] | None:
     """The compiled step helper, or None (no compiler, or ``DYNABRAIN_FMU_FASTPATH=0``)."""
-    lib = _library()
-    if lib is None:
-        return None
-    fn = lib.dyn_step
-    fn.argtypes = [c_void_p, c_void_p, c_void_p]
-    fn.restype = c_int
-    return fn
+    return _function("dyn_step")
 
 
 @functools.cache
 def group_helper() -> Callable[..., int] | None:
     """The helper that steps several FMUs in one call (``dyn_group``: `orchestrator.fmu.fused`), or None."""
+    return _function("dyn_group")
+
+
+def _function(name: str) -> Callable[..., int] | None:
+    """A function of the helper library taking three pointers and returning an int, or None."""
     lib = _library()
     if lib is None:
         return None
-    fn = lib.dyn_group
+    fn = getattr(lib, name)
     fn.argtypes = [c_void_p, c_void_p, c_void_p]
     fn.restype = c_int
     return fn
