@@ -132,7 +132,7 @@ def test_an_edited_core_missing_its_engine_hooks_cannot_be_made():
 
     with pytest.raises(TypeError, match="abstract") as err:
         NoEngine("core", SceneSpec())
-    for missing in ("_edit", "_freeze_entry", "_parent", "_weld_data"):
+    for missing in ("_activate", "_write_all", "_index", "_freeze_entry", "_parent", "_weld_data"):
         assert missing in str(err.value)
 
 

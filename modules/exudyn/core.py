@@ -201,12 +201,6 @@ class ExudynCore(EditedCore):
                 outs.append(Port(f"{b}.points", (top.spec[b].cable.segments + 1, 3), "m", doc="node positions"))
         return tuple(ins), tuple(outs)
 
-    def inputs(self) -> Sequence[Port]:
-        return self._ports_in
-
-    def outputs(self) -> Sequence[Port]:
-        return self._ports_out
-
     def _unbind(self) -> None:
         nj = len(self._top.qjoints)
         self._out: dict[str, np.ndarray] = {}
@@ -248,9 +242,6 @@ class ExudynCore(EditedCore):
         self._period = ctx.period_ns * 1e-9
         self._cache.clear()  # built again for this period: its first accelerations come from its parameters
         self._s = self._structure(self._edits, Start())
-        self._write_all()
-
-    def start(self, t_ns: int) -> None:
         self._write_all()
 
     def step(self, t_ns: int, dt_ns: int) -> None:
@@ -306,10 +297,6 @@ class ExudynCore(EditedCore):
         twin._s.set_state(self._s.get_state())
         twin._write_all()
         return twin
-
-    def refresh_outputs(self) -> None:
-        """Rewrite every output from the current state (the world calls this after `place`)."""
-        self._write_all()
 
     # -- parameters -------------------------------------------------------------------------------------------
     def _check_param(self, name: str, value: Any) -> None:
@@ -400,14 +387,9 @@ class ExudynCore(EditedCore):
             array[...] = self._s.cable_coords(name)[0][:, :3]
 
     # -- scene queries ----------------------------------------------------------------------------------------
-    def objects(self) -> list[str]:
-        return list(self._top.objects)
-
-    def bodies(self) -> list[str]:
-        return list(self._top.bodies)
-
-    def joints(self) -> list[str]:
-        return list(self._top.joints)
+    @property
+    def _index(self) -> Any:
+        return self._top
 
     def body_info(self, name: str) -> BodyInfo:
         row, top = self._row(name), self._top
@@ -541,8 +523,3 @@ class ExudynCore(EditedCore):
             self._attach()
         self._s = new
         self._s.apply(**self._settings())
-
-    def _edit(self, edits: Edits) -> None:
-        if edits != self._edits:
-            self._activate(edits, carry=True)
-            self._write_all()

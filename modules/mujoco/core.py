@@ -422,12 +422,6 @@ class MujocoCore(EditedCore):
             bodies(body_blocks[2:])
         return tuple(ins), tuple(outs + views)
 
-    def inputs(self) -> Sequence[Port]:
-        return self._ports_in
-
-    def outputs(self) -> Sequence[Port]:
-        return self._ports_out
-
     def _unbind(self) -> None:
         """A private buffer in place of the bus (laid out as the bus lays out the outputs): the step
         code never tests for missing ports."""
@@ -485,9 +479,6 @@ class MujocoCore(EditedCore):
         self._period = ctx.period_ns * 1e-9
         self._apply_params(self._compiled)
         mujoco.mj_forward(self._compiled.model, self._compiled.data)
-
-    def start(self, t_ns: int) -> None:
-        self._write_all()
 
     def step(self, t_ns: int, dt_ns: int) -> None:
         s = self._compiled
@@ -580,10 +571,6 @@ class MujocoCore(EditedCore):
         twin._cache = OrderedDict()
         twin._use(twin._remember(self._compiled.clone()))
         return twin
-
-    def refresh_outputs(self) -> None:
-        """Rewrite every output from the current state (the world calls this after `place`)."""
-        self._write_all()
 
     mj = property(operator.attrgetter("_view"), doc=(
         "The MuJoCo model and data simulated now (a `MujocoView`), read only; another view after each switch "
@@ -725,14 +712,9 @@ class MujocoCore(EditedCore):
                 f"larger than 1e10; check the inputs, or reduce forces or the timestep (substeps)")
 
     # -- scene queries --------------------------------------------------------------------------------------
-    def objects(self) -> list[str]:
-        return list(self._layout.objects)
-
-    def bodies(self) -> list[str]:
-        return list(self._layout.bodies)
-
-    def joints(self) -> list[str]:
-        return list(self._layout.joints)
+    @property
+    def _index(self) -> Any:
+        return self._layout
 
     def body_info(self, name: str) -> BodyInfo:
         row, lay = self._row(name), self._layout
@@ -865,11 +847,6 @@ class MujocoCore(EditedCore):
         if view is not self._scene:  # bodies added or removed: other ports
             self._use_scene(view)
             self._attach()
-
-    def _edit(self, edits: Edits) -> None:
-        if edits != self._edits:
-            self._activate(edits, carry=True)
-            self._write_all()
 
     def _ports_of(self, edits: Edits) -> tuple[tuple[Port, ...], tuple[Port, ...]]:
         view = self._scene_view(edits)

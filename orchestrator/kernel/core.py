@@ -450,9 +450,11 @@ class EditedCore(PhysicsCore):
     """A physics core whose structural edits are one immutable value, part of its state:
     ``self._edits``, an `Edits` (frozen objects, joints made at run time, collision groups, bodies
     added and removed, per-body materials). The bookkeeping and the checks live here; an engine says
-    how to freeze an object (`_freeze_entry`), what a weld holds (`_weld_data`) and how to rebuild
-    itself for an edits value (`_edit`, atomic: a value it cannot build raises and changes nothing).
-    It keeps ``self._rows`` (body name -> row) and answers `objects`, `bodies`, `joints`.
+    how to freeze an object (`_freeze_entry`), what a weld holds (`_weld_data`), how to rebuild itself
+    for an edits value (`_activate`, atomic: a value it cannot build raises and changes nothing) and
+    how to write every output (`_write_all`). It keeps ``self._rows`` (body name -> row) and
+    ``self._ports_in`` / ``self._ports_out``, and answers `objects`, `bodies`, `joints` from the
+    engine's index of its scene (`_index`).
 
     Ports follow the bodies: an edits value with other bodies added or removed (`Edits.scene_key`)
     has other ports. The engine keeps one port layout per scene key it has seen, and when the world
@@ -465,11 +467,52 @@ class EditedCore(PhysicsCore):
 
     _edits: Edits
     _rows: dict[str, int]
+    _ports_in: tuple[Port, ...]
+    _ports_out: tuple[Port, ...]
 
     # -- engine hooks --------------------------------------------------------------------------------
     @abstractmethod
+    def _activate(self, edits: Edits, *, carry: bool) -> None:
+        """Make ``edits`` the current structure, with the state carried over (``carry``) or not; a
+        value the engine cannot build raises and changes nothing."""
+
+    @abstractmethod
+    def _write_all(self) -> None:
+        """Write every output from the current state."""
+
+    @property
+    @abstractmethod
+    def _index(self) -> Any:
+        """The engine's index of its current scene: ``objects``, ``bodies`` and ``joints`` (names)."""
+
     def _edit(self, edits: Edits) -> None:
-        """Make ``edits`` the current structure (state carried over)."""
+        """Make ``edits`` the current structure (state carried over) and write the outputs."""
+        if edits != self._edits:
+            self._activate(edits, carry=True)
+            self._write_all()
+
+    # -- the parts every engine shares ----------------------------------------------------------------
+    def inputs(self) -> Sequence[Port]:
+        return self._ports_in
+
+    def outputs(self) -> Sequence[Port]:
+        return self._ports_out
+
+    def start(self, t_ns: int) -> None:
+        self._write_all()
+
+    def refresh_outputs(self) -> None:
+        """Rewrite every output from the current state (the world calls this after `place`)."""
+        self._write_all()
+
+    def objects(self) -> list[str]:
+        return list(self._index.objects)
+
+    def bodies(self) -> list[str]:
+        return list(self._index.bodies)
+
+    def joints(self) -> list[str]:
+        return list(self._index.joints)
 
     @abstractmethod
     def _freeze_entry(self, obj: str) -> tuple:
