@@ -36,6 +36,7 @@ import numpy as np
 import zenoh
 
 from dynabrain.orchestrator.brain import BranchStatus
+from dynabrain.orchestrator.brain.batch import BranchStatuses
 
 from . import frames
 from . import protocol as p
@@ -106,7 +107,7 @@ class Snapshot:
 
 
 @dataclass(frozen=True)
-class BatchReply:
+class BatchReply(BranchStatuses):
     """What `BrainClient.batch` returns: ``signals[name]`` of shape ``(branches, ticks, *shape)`` (row k the
     value after tick k+1; NaN for ticks a failed branch did not run), ``status[b]`` how branch b ended,
     ``snapshots[b]`` the snapshot that keeps its final state (with ``keep_states``; else None), which
@@ -121,15 +122,6 @@ class BatchReply:
     wall_s: float
     evicted: list[int]
     """Snapshots the server dropped to make room for these (it keeps 64)."""
-
-    @property
-    def ok(self) -> bool:
-        """Every branch ran to its end."""
-        return all(s.ok for s in self.status)
-
-    @property
-    def failed(self) -> list[int]:
-        return [b for b, s in enumerate(self.status) if not s.ok]
 
     @classmethod
     def from_frame(cls, frame: frames.Frame) -> BatchReply:

@@ -50,8 +50,24 @@ from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 BACKENDS = ("auto", "serial", "processes", "ray", "threads")
 
 
+class BranchStatuses:
+    """``ok`` and ``failed`` of a batch's ``status`` list (one `BranchStatus` a branch): of a `BatchResult`
+    here, and of the reply a brain gets over the bridge."""
+
+    status: list[BranchStatus]
+
+    @property
+    def ok(self) -> bool:
+        """Every branch ran to its end."""
+        return all(s.ok for s in self.status)
+
+    @property
+    def failed(self) -> list[int]:
+        return [b for b, s in enumerate(self.status) if not s.ok]
+
+
 @dataclass
-class BatchResult:
+class BatchResult(BranchStatuses):
     """What a batch returns. ``signals[name]`` has shape ``(branches, ticks, *signal shape)``, row k the
     value after tick k+1 (NaN for ticks a failed branch did not run); ``states[b]`` is branch b's final
     state as `World.export_state` bytes (None when not kept or when its worker died); ``status[b]`` says
@@ -63,15 +79,6 @@ class BatchResult:
     ticks: int
     backend: str
     wall_s: float
-
-    @property
-    def ok(self) -> bool:
-        """Every branch ran to its end."""
-        return all(s.ok for s in self.status)
-
-    @property
-    def failed(self) -> list[int]:
-        return [b for b, s in enumerate(self.status) if not s.ok]
 
     @property
     def ticks_per_s(self) -> float:
