@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from dynabrain.modules.ik import IkResult, InverseKinematics, Target
-from dynabrain.modules.stereo import StereoCamera, to_world, triangulate
+from dynabrain.modules.stereo import Region, StereoCamera, largest_region, to_world, triangulate
 from dynabrain.orchestrator import World, load_world
 
 SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "drawer.yaml"
@@ -52,15 +52,6 @@ DOWN = {"axis": [0, 0, 1], "direction": [0, 0, -1]}
 """The fingers point down (the tip site's z along them), whatever the arm's heading."""
 DURATIONS_S = {"over": 1.0, "lower": 0.6, "pull": 0.5}
 SETTLE_S = 0.6
-
-
-@dataclass(frozen=True)
-class Region:
-    """A colour region in one eye: its pixels and centroid (u, v in px, pixel centres at +0.5)."""
-
-    mask: np.ndarray
-    centroid: np.ndarray
-    pixels: int
 
 
 @dataclass(frozen=True)
@@ -102,20 +93,11 @@ def red(rgb: np.ndarray) -> np.ndarray:
     return (r > 0.3) & (r > 2.5 * g) & (r > 2.5 * b)
 
 
-def region(mask: np.ndarray) -> Region | None:
-    """The largest connected region of a mask, or None when there is none."""
-    count, labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if count < 2:
-        return None
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return Region(labels == best, centroids[best] + 0.5, int(stats[best, cv2.CC_STAT_AREA]))
-
-
 def look(world: World, eyes: str = "eyes", min_pixels: int = 6) -> Sighting | None:
     """Find the knob in the eyes' last images and triangulate it; None when it is not seen in both, or
     the two regions are not on the same rows (not one object)."""
     g = world.get
-    left, right = region(red(g(f"{eyes}.left.rgb"))), region(red(g(f"{eyes}.right.rgb")))
+    left, right = largest_region(red(g(f"{eyes}.left.rgb"))), largest_region(red(g(f"{eyes}.right.rgb")))
     if left is None or right is None or min(left.pixels, right.pixels) < min_pixels:
         return None
     rows = float(left.centroid[1] - right.centroid[1])

@@ -40,7 +40,7 @@ import numpy as np
 
 from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.modules.mujoco.offscreen import RendererUnavailableError
-from dynabrain.modules.stereo import StereoCamera, to_world, triangulate
+from dynabrain.modules.stereo import Region, StereoCamera, largest_region, to_world, triangulate
 from dynabrain.orchestrator import BodySpec, JointSpec, SceneSpec, World, load_world
 
 SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "recognised_blocks.yaml"
@@ -61,15 +61,6 @@ DENSITY_KG_M3 = 600.0
 SQUARE_PX = 2.0
 """A face whose length and width differ by less than this (in pixels) is square: its heading is known
 modulo 90 degrees, and is given within +-45."""
-
-
-@dataclass(frozen=True)
-class Region:
-    """A colour region in one eye: its pixels and centroid (u, v in px, pixel centres at +0.5)."""
-
-    mask: np.ndarray
-    centroid: np.ndarray
-    pixels: int
 
 
 @dataclass(frozen=True)
@@ -118,15 +109,6 @@ def top_face(rgb: np.ndarray, colour: str) -> np.ndarray:
     return mask
 
 
-def region(mask: np.ndarray) -> Region | None:
-    """The largest connected region of a mask, or None when there is none."""
-    count, labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    if count < 2:
-        return None
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return Region(labels == best, centroids[best] + 0.5, int(stats[best, cv2.CC_STAT_AREA]))
-
-
 def estimate(colour: str, left: Region, disparity_px: float, world: World, eyes: str) -> Block:
     """The block whose top face is ``left`` (in the left eye) at this disparity (see the module
     docstring, step 3)."""
@@ -154,7 +136,7 @@ def see(world: World, eyes: str = "eyes") -> list[Sighting]:
     g = world.get
     seen = []
     for colour in HUES:
-        left, right = region(top_face(g(f"{eyes}.left.rgb"), colour)), region(top_face(g(f"{eyes}.right.rgb"), colour))
+        left, right = (largest_region(top_face(g(f"{eyes}.{eye}.rgb"), colour)) for eye in ("left", "right"))
         if left is None or right is None or min(left.pixels, right.pixels) < MIN_PIXELS:
             continue
         rows = float(left.centroid[1] - right.centroid[1])

@@ -43,6 +43,7 @@ The module has no state of its own; a fork opens its own GL context at its first
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -105,6 +106,24 @@ def triangulate(u: Any, v: Any, disparity: Any, focal: float, center: Any, basel
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where(d > 0, focal * b / d, np.nan)
     return np.stack([(u - c[0]) * z / focal, (v - c[1]) * z / focal, z], axis=-1)
+
+
+@dataclass(frozen=True)
+class Region:
+    """A colour region in one eye: its pixels and centroid (u, v in px, pixel centres at +0.5)."""
+
+    mask: np.ndarray
+    centroid: np.ndarray
+    pixels: int
+
+
+def largest_region(mask: np.ndarray) -> Region | None:
+    """The largest connected region of a mask (8-connected, OpenCV), or None when there is none."""
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    if count < 2:
+        return None
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return Region(labels == best, centroids[best] + 0.5, int(stats[best, cv2.CC_STAT_AREA]))
 
 
 def to_world(points: np.ndarray, pos: Any, rot: Any) -> np.ndarray:
