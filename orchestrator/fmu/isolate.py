@@ -203,9 +203,7 @@ class IsolatedFMUModule(FMUModuleBase):
         child = self._child
         head, ins, outs, state_at = self._io
         head[0], head[1] = t_ns, dt_ns
-        for view, where in self._gather:
-            self._in_values[where] = view.reshape(-1)
-        ins[:] = self._in_values
+        ins[:] = self._gather_inputs()
         try:
             child.conn.send_bytes(STEP)
             if not child.conn.poll(self.call_timeout):
@@ -295,10 +293,15 @@ class IsolatedFMUModule(FMUModuleBase):
     def _bind_buffers(self) -> None:
         self._in_values, self._out_values, self._gather, self._scatter = self._spans()
 
-    def _inputs_now(self) -> np.ndarray:
+    def _gather_inputs(self) -> np.ndarray:
+        """The inputs now, gathered from the bus into ``_in_values`` (which this returns)."""
         for view, where in self._gather:
             self._in_values[where] = view.reshape(-1)
-        return np.array(self._in_values, dtype=np.float64)
+        return self._in_values
+
+    def _inputs_now(self) -> np.ndarray:
+        """A copy of the inputs now, for a request."""
+        return np.array(self._gather_inputs(), dtype=np.float64)
 
     def _outputs_now(self) -> np.ndarray:
         """The outputs on the bus: after a restore, the values clocked outputs hold until their next tick."""
