@@ -28,10 +28,12 @@ setup: system-deps $(BIN)/dynabrain
 run: setup
 	$(BIN)/dynabrain run $(SCENARIO)
 
+# The suite runs on every core up to four (pytest-xdist), one test file per worker at a time so a file's
+# module fixtures (FMU builds, tick runners) are made once: on 2 cores 92 s instead of 152 s.
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports --no-cache
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
 bench: setup
 	for b in $$(ls bench/*.py | grep -v timing.py); do echo "== $$b"; $(BIN)/python $$b || exit 1; done
