@@ -33,6 +33,9 @@ port            shape    unit  meaning
 
 from __future__ import annotations
 
+import struct
+from typing import Any
+
 import mujoco
 import numpy as np
 
@@ -82,6 +85,7 @@ class ZmpSensor(Module):
         self._link = MujocoLink(self.name, ctx.core)
         self._link.changed()
         self._resolve()
+        self._write: tuple | None = None  # (pack_into, the outputs' memoryview), made by `bind`
 
     def _resolve(self) -> None:
         """Each foot's contact sensor, as indices into sensordata: one gather reads every value a step
@@ -99,6 +103,7 @@ class ZmpSensor(Module):
             points += [adr + j * slot + offset["pos"] + i for j in range(num) for i in range(3)]
         self._index = np.array(found + normal + points, dtype=np.intp)
         self._nums = [num for _foot, _name, num in self._sensors]
+        self._sensordata = link.data.sensordata
 
     def _contact_sensor(self, foot: str) -> tuple[str, int, int, int, dict[str, int]]:
         """The foot's native contact sensor: (name, sensordata address, values per contact, contacts it
@@ -136,6 +141,14 @@ class ZmpSensor(Module):
     def start(self, t_ns: int) -> None:
         self.step(t_ns, 0)
 
+    def bind(self) -> None:
+        out = self.out_flat
+        self._write = (struct.Struct(f"={out.size}d").pack_into, memoryview(out)) if out.size else None
+
+    def __getstate__(self) -> dict[str, Any]:
+        """For a fork's deep copy: a memoryview does not copy; the copy makes its own when it is bound."""
+        return {**self.__dict__, "_write": None}
+
     def step(self, t_ns: int, dt_ns: int) -> None:
         link = self._link
         if link.core.mj is not link.seen:  # the core switched model: find the ids again
@@ -143,10 +156,13 @@ class ZmpSensor(Module):
             self._resolve()
         p = self._param_values
         try:
-            values = feet_support(link.data.sensordata[self._index].tolist(), self._nums, p["min_force"],
-                                  p["min_margin"])
+            values = feet_support(self._sensordata[self._index].tolist(), self._nums, p["min_force"], p["min_margin"])
         except ContactOverflowError as exc:
             foot, name, num = self._sensors[exc.foot]
             raise RuntimeError(f"foot {foot!r}: its contact sensor {name!r} found {exc.found} contacts and holds "
                                f"{num} (num={num}): raise num, or the centre of pressure misses contacts") from None
-        self.out_flat[:] = values  # every output, in the order `outputs` declares them
+        write = self._write  # every output, in the order `outputs` declares them, packed into the bus's
+        if write is None:    # bytes (0.19 us, against 0.46 to assign the list to the array)
+            self.out_flat[:] = values
+        else:
+            write[0](write[1], 0, *values)
