@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from timing import best_of
+from timing import best_of, best_of_each
 
 from dynabrain.orchestrator.fmu import load_fmu_info
 from dynabrain.orchestrator.fmu.build import compiler
@@ -256,6 +256,45 @@ def isolated_step(info) -> tuple[float, float]:
         return start, best_of(lambda: world.tick(steps)) / steps
 
 
+def _echo(conn) -> None:
+    """The far end of `ping_pong`: answers each byte with one, until the pipe closes."""
+    try:
+        while True:
+            conn.send_bytes(conn.recv_bytes())
+    except EOFError:
+        pass
+
+
+def ping_pong(rounds: int = 5000) -> tuple[float, float]:
+    """(seconds, seconds) of a one-byte round trip to another process over a pipe: waiting asleep in
+    ``recv`` and waiting awake (polling the pipe without sleeping, as an isolated FMU's step does for up
+    to `isolate.SPIN_S`): the floor under an isolated step, on this machine now."""
+    import multiprocessing as mp
+
+    here, there = mp.Pipe()
+    child = mp.get_context("spawn").Process(target=_echo, args=(there,), daemon=True)
+    child.start()
+
+    def asleep() -> None:
+        for _ in range(rounds):
+            here.send_bytes(b"s")
+            here.recv_bytes()
+
+    def awake() -> None:
+        for _ in range(rounds):
+            here.send_bytes(b"s")
+            while not here.poll(0):
+                pass
+            here.recv_bytes()
+
+    try:
+        asleep()  # the child is up and warm
+        return tuple(t / rounds for t in best_of_each([asleep, awake], 5))
+    finally:
+        here.close()
+        child.join(5)
+
+
 def main() -> None:
     import fmpy
 
@@ -308,9 +347,12 @@ def main() -> None:
     per_tick = ours - per_fmu_step_us(results[1][1])
     print(f"   history's share of a step (master with states - without): {per_tick:.3f} us per FMU per tick")
     start, step = isolated_step(info)
+    asleep, awake = ping_pong()
     print(f"isolate: true (one FMU in its own process): start {start * 1e3:.0f} ms, {step * 1e6:.1f} us per step "
           f"(inputs, outputs and the serialized state in shared memory, one byte each way on a socket)  "
           f"target <= 40 us: {'met' if step <= 40e-6 else 'MISSED'}")
+    print(f"   the floor: a one-byte round trip to another process, {asleep * 1e6:.1f} us waiting asleep, "
+          f"{awake * 1e6:.1f} us waiting awake (as the step does); the step's own work {(step - awake) * 1e6:.1f} us")
 
 
 if __name__ == "__main__":
