@@ -56,6 +56,7 @@ op = st.one_of(
     st.tuples(st.just("remove"), st.integers(0, 1)),
     st.tuples(st.just("make"), st.sampled_from([["a"], ["a", "b"]])),
     st.tuples(st.just("event"), st.integers(1, 12)),
+    st.tuples(st.just("drive"), st.lists(st.floats(-1, 1), min_size=1, max_size=7)),
 )
 
 
@@ -69,6 +70,10 @@ def apply(world: World, action: tuple, fired: list) -> None:
         world.set("g.k", arg)
     elif kind == "push":
         world.set("core.a.wrench", [arg, 0.0, 0.0, 0.0, 0.0, 0.0])
+    elif kind == "drive":  # an input written before each tick (`World.run`)
+        wrench = np.zeros((len(arg), 6))
+        wrench[:, 1] = arg
+        world.run(len(arg), inputs={"core.a.wrench": wrench})
     elif kind == "add" and f"c{arg}" not in world.modules:
         world.add_module(Counter(f"c{arg}"))
     elif kind == "remove" and f"c{arg}" in world.modules:
@@ -93,10 +98,14 @@ def test_keyframes_step_to_the_same_bits_as_a_state_every_tick(every, ops):
     fired_a: list = []
     fired_b: list = []
     for i, action in enumerate(ops):
+        if action[0] == "backtick":  # both as far back: as far as the world with a state every tick can go
+            action = ("backtick", min(action[1], every_tick.history.available))
         apply(every_tick, action, fired_a)
         apply(keyframes, action, fired_b)
         assert fingerprint(keyframes) == fingerprint(every_tick), f"diverged at op {i}: {action}"
-        assert keyframes.history.available == every_tick.history.available
+        # never less; after a backtick it can be more: the keyframe ring still holds the keyframe before
+        # the oldest tick within its depth, which a ring of a state every tick has dropped
+        assert keyframes.history.available >= every_tick.history.available
     assert fired_a == fired_b  # events ran as often: never again while stepping from a keyframe
     for w in (every_tick, keyframes):
         w.close()
@@ -119,6 +128,40 @@ def test_a_deep_backtick_steps_again_from_the_keyframe_before_it():
     assert "keyframes every 8 ticks" in keyframes.history.describe()
     assert keyframes.history.states_when_full == 14 and every_tick.history.states_when_full == 101
     for w in (every_tick, keyframes):
+        w.close()
+
+
+@pytest.mark.parametrize("how", ["run", "set"])
+def test_inputs_written_every_tick_keep_keyframes_and_step_again_to_the_same_bits(how):
+    """A brain that writes an input before every tick (`run` with inputs, or `set` then `tick`) leaves
+    history holding keyframes only: the ticks between hold the inputs, and a backtick to any of them
+    writes them again on the way (the same bits as a world with a state every tick)."""
+    worlds = [make_world(1), make_world(4)]
+    pushes = np.zeros((30, 6))
+    pushes[:, 0] = np.sin(np.arange(30) * 0.7) * 0.5
+    pushes[:, 2] = np.cos(np.arange(30) * 0.3)
+    for w in worlds:
+        w.tick(3)
+        if how == "run":
+            w.run(30, inputs={"core.a.wrench": pushes})
+        else:
+            for row in pushes:
+                w.set("core.a.wrench", row)
+                w.tick()
+        w.set("core.a.wrench", [0.0, 0.0, 0.3, 0.0, 0.0, 0.0])  # written at the newest tick, not stepped yet
+    every_tick, keyframes = worlds
+    assert fingerprint(keyframes) == fingerprint(every_tick)
+    assert keyframes.tick_count == 33
+    assert keyframes.history.describe().startswith("9 of")  # ticks 0, 4, ..., 32: keyframes only
+    for n in (0, 1, 2, 3, 5, 6, 7):
+        for w in worlds:
+            w.backtick(n)
+        assert fingerprint(keyframes) == fingerprint(every_tick), n
+        np.testing.assert_array_equal(keyframes.get("core.a.wrench"), every_tick.get("core.a.wrench"))
+        for w in worlds:
+            w.tick(1)
+        assert fingerprint(keyframes) == fingerprint(every_tick), n
+    for w in worlds:
         w.close()
 
 

@@ -16,6 +16,7 @@ import os
 import re
 from collections import deque
 from collections.abc import Callable, Iterable
+from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -86,6 +87,21 @@ class WorldState:
         return [rec.name for rec, st in zip(self.structure.records, self.states, strict=True) if st is UNRESTORABLE]
 
 
+class Written:
+    """A tick between keyframes whose inputs were written before its step (`History.written`): the bus
+    spans written, ``(start, values as bytes)``, in the order they were written. Stepping again from the
+    keyframe before it writes them again at this tick (`History.restore_point`)."""
+
+    __slots__ = ("spans", "tick")
+
+    def __init__(self, tick: int, spans: list[tuple[int, bytes]]):
+        self.tick = tick
+        self.spans = spans
+
+    def __repr__(self) -> str:
+        return f"<Written tick={self.tick} spans={len(self.spans)}>"
+
+
 def _size(value: Any) -> int:
     if isinstance(value, np.ndarray):
         return value.nbytes
@@ -113,8 +129,9 @@ class History:
     ``every``: keyframes. 1 (History's default; a `World` keeps one every 2 ticks unless told
     otherwise): a state every tick. k > 1: a state every k ticks (at ticks
     that are multiples of k), and after every edit or event (the world pushes those whole); the ticks
-    between hold only their number, and `restore_point` gives the keyframe before a tick and how many
-    ticks the world steps again from it to reach that tick (`World.backtick`). It trades the cost of
+    between hold only their number, or (`Written`) the inputs written at them before their step, and
+    `restore_point` gives the keyframe before a tick, how many ticks the world steps again from it to
+    reach that tick (`World.backtick`) and the inputs to write again on the way. It trades the cost of
     a state each tick for up to k - 1 ticks stepped again at each backtick (see the README, "History
     with keyframes")."""
 
@@ -127,7 +144,7 @@ class History:
         self.budget = budget
         self.every = every
         # a keyframe at or before the oldest tick within ``depth`` is always kept
-        self._ring: deque[tuple | int] = deque(maxlen=depth + every)
+        self._ring: deque[tuple | int | Written] = deque(maxlen=depth + every)
         self._checked: Structure | None = None  # the structure whose state was last checked
 
     def __len__(self) -> int:
@@ -154,16 +171,29 @@ class History:
         else:
             self._ring.append(state.entry())
 
-    def set_top_bus(self, tick: int, bus: bytes) -> bool:
-        """Put ``bus`` into the newest entry when it is the whole state of ``tick`` (inputs written
-        before a tick change only the bus: this spares the world a capture of every module); False when
-        it is not (a keyframe ring between keyframes: the world captures the state instead)."""
-        if not self._ring:
+    def written(self, tick: int, spans: list[tuple[int, bytes]], bus: Callable[[], bytes]) -> bool:
+        """Keep inputs written into the bus at ``tick`` before its step (``spans``: ``(start, values as
+        bytes)``; they change only the bus, so this spares the world a capture of every module): the
+        newest entry, when it is ``tick``'s, takes them: a state takes the whole bus (``bus()``), a tick
+        between keyframes the spans (`Written`: stepping again from its keyframe writes them again).
+        False when the newest entry is another tick's (the world then captures the state instead)."""
+        ring = self._ring
+        if not ring:
             return False
-        top = self._ring[-1]
-        if type(top) is not tuple or top[1] != tick:
-            return False
-        self._ring[-1] = (*top[:3], bus, *top[4:])
+        top = ring[-1]
+        kind = type(top)
+        if kind is tuple:
+            if top[1] != tick:
+                return False
+            ring[-1] = (*top[:3], bus(), *top[4:])
+        elif kind is Written:
+            if top.tick != tick:
+                return False
+            top.spans += spans
+        else:
+            if top != tick:
+                return False
+            ring[-1] = Written(tick, spans)
         return True
 
     def check(self, state_bytes: int, what: str = "") -> None:
@@ -211,15 +241,17 @@ class History:
                                 "its keyframe and the ticks to step from it are restore_point's")
         return WorldState.from_entry(entry)
 
-    def restore_point(self, n: int) -> tuple[WorldState, int]:
-        """(the newest keyframe at or before ``n`` ticks back, how many ticks after it that tick is): the
-        state itself and 0 where that tick holds one (always, with a state every tick)."""
+    def restore_point(self, n: int) -> tuple[WorldState, int, list[list[tuple[int, bytes]] | None]]:
+        """(the newest keyframe at or before ``n`` ticks back, how many ticks after it that tick is, and for
+        each of those ticks the inputs written at it: `Written` spans, or None): the state itself, 0 and
+        no inputs where that tick holds one (always, with a state every tick)."""
         self._check_back(n)
         ring, at = self._ring, len(self._ring) - 1 - n
         for ahead in range(at + 1):
             entry = ring[at - ahead]
             if type(entry) is tuple:
-                return WorldState.from_entry(entry), ahead
+                inputs = [e.spans if type(e) is Written else None for e in islice(ring, at - ahead + 1, at + 1)]
+                return WorldState.from_entry(entry), ahead, inputs
         raise RollbackError(f"backtick({n}): no keyframe kept before it")  # `available` keeps one
 
     def _check_back(self, n: int) -> None:
@@ -251,10 +283,11 @@ class History:
         return WorldState.from_entry(newest).nbytes() if newest is not None else 0
 
 
-def _tick_of(entry: tuple | int) -> int:
-    """The tick of an entry of the ring: a state's (`WorldState.entry`), or the number a tick between
-    keyframes holds."""
-    return entry[1] if type(entry) is tuple else entry
+def _tick_of(entry: tuple | int | Written) -> int:
+    """The tick of an entry of the ring: a state's (`WorldState.entry`), or a tick's between keyframes
+    (its number, or `Written`)."""
+    kind = type(entry)
+    return entry[1] if kind is tuple else entry.tick if kind is Written else entry
 
 
 def projected_state_bytes(modules: Iterable[Any]) -> dict[str, int]:

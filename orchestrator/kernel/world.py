@@ -195,12 +195,12 @@ class World:
             self._check_open()
             if n == 0:
                 return
-            target, ahead = self._history.restore_point(n)  # (a keyframe, and the ticks after it)
+            target, ahead, inputs = self._history.restore_point(n)  # (a keyframe, the ticks after it, their inputs)
             self._check_restorable(target, f"backtick({n})")
             from_tick = self._tick
             self._history.drop_newest(n)
             self._apply(target)
-            self._replay(ahead)
+            self._replay(ahead, inputs)
             self._dirty = False
             for obs in self._observers:
                 obs.on_rollback(self._view, from_tick)
@@ -271,16 +271,17 @@ class World:
     def _back_to(self, n: int) -> None:
         """Make the world what it was ``n`` ticks ago (0: at the current tick, after a failed one), from
         history's keyframe and the ticks stepped again after it; history itself is left as it is."""
-        state, ahead = self._history.restore_point(n)
+        state, ahead, inputs = self._history.restore_point(n)
         self._apply(state)
-        self._replay(ahead)
+        self._replay(ahead, inputs)
 
-    def _replay(self, ticks: int) -> None:
+    def _replay(self, ticks: int, inputs: Sequence[Sequence[tuple[int, bytes]] | None] = ()) -> None:
         """Step ``ticks`` ticks again from the keyframe just applied, as they ran: no events (a keyframe
-        follows every tick that had some), no history entries, no observers. Steps that do not repeat
-        themselves (a module that is not deterministic) raise a `RollbackError`, the world left at the
-        keyframe and history cut after it."""
-        dt_ns = self.dt_ns
+        follows every tick that had some), no history entries, no observers; ``inputs[k]``: the inputs
+        written before the step after the k-th (`History.restore_point`), written again. Steps that do
+        not repeat themselves (a module that is not deterministic) raise a `RollbackError`, the world
+        left at the keyframe and history cut after it."""
+        dt_ns, mv = self.dt_ns, self._mv.cast("B")
         for done in range(ticks):
             n = self._tick
             try:
@@ -292,6 +293,8 @@ class World:
                 raise RollbackError(f"stepping again from the keyframe at tick {keyframe} to tick {keyframe + ticks} "
                                     f"failed at tick {n} ({exc}); the world is at tick {keyframe}") from exc
             self._tick = n + 1
+            for start, data in inputs[done] or ():
+                mv[8 * start:8 * start + len(data)] = data
 
     def _rollback_failed_tick(self, n: int, where: str, exc: Exception) -> ModuleError:
         self._back_to(0)
@@ -739,8 +742,12 @@ class World:
                 arr = np.asarray(value, dtype=np.float64)
                 if arr.shape != slot.shape:
                     raise WiringError(f"{target} has shape {slot.shape}, got a value of shape {arr.shape}")
-                self._buf[slot.start:slot.start + slot.size] = arr.reshape(-1)
-                self._edited("set", name=target, value=arr.tolist())
+                values = arr.reshape(-1)
+                self._buf[slot.start:slot.start + slot.size] = values
+                if self._dirty or not self._history.written(self._tick, [(slot.start, values.tobytes())],
+                                                             self._mv.tobytes):
+                    self._dirty = True  # history could not keep the input: the next tick saves a whole state
+                self._emit("set", name=target, value=arr.tolist())
                 return
             module, key = target
             module.set_param(key, value, running=self._tick > 0)  # its binding tells `_param_changed`
@@ -1141,24 +1148,32 @@ class World:
                 raise DynabrainError(f"run({ticks}): the number of ticks must be >= 0")
             drives = self._drives(inputs or {}, ticks)
             out = {name: np.full((ticks, *self._signal_slot(name, "run() record").shape), np.nan) for name in record}
-            rows = [(out[name].reshape(ticks, -1), name) for name in out]
-            structure, slots = None, []
+            # rows cross as bytes (memoryview copies): each input's values as one bytes object, whose row k
+            # is written into the bus and handed to history as it is (`History.written`)
+            given = [(values.tobytes(), 8 * values.shape[1], values, name) for values, name in drives]
+            rows = [(memoryview(out[name]).cast("B"), 8 * out[name][0].size, name) for name in out]
+            structure, slots, bus = None, [], self._mv
             k = 0
             try:
                 for k in range(ticks):
                     if self._structure is not structure:  # (an event may change it): find the slots again
-                        structure = self._structure
-                        slots = [(self._input_slot(name), values, name) for values, name in drives]
-                        recs = [(self._signal_slot(name, "run() record"), row) for row, name in rows]
-                    for slot, values, name in slots:
-                        self._buf[slot.start:slot.start + slot.size] = values[k]
-                        if self._observers:
-                            self._emit("set", name=name, value=values[k].reshape(slot.shape).tolist())
-                    if slots and not self._dirty and not self._history.set_top_bus(self._tick, self._buf.tobytes()):
-                        self._dirty = True  # (the state of this tick is saved with the inputs written in it)
+                        structure, bus = self._structure, self._mv.cast("B")
+                        slots = [(self._input_slot(name), raw, size, values, name) for raw, size, values, name in given]
+                        recs = [(8 * self._signal_slot(name, "run() record").start, size, row)
+                                for row, size, name in rows]
+                    if slots:
+                        spans = []
+                        for slot, raw, size, values, name in slots:
+                            row = raw[k * size:k * size + size]
+                            bus[8 * slot.start:8 * slot.start + size] = row
+                            spans.append((slot.start, row))
+                            if self._observers:
+                                self._emit("set", name=name, value=values[k].reshape(slot.shape).tolist())
+                        if not self._dirty and not self._history.written(self._tick, spans, self._mv.tobytes):
+                            self._dirty = True  # (the state of this tick is saved with the inputs written in it)
                     self._step_once()
-                    for slot, row in recs:
-                        row[k] = self._buf[slot.start:slot.start + slot.size]
+                    for at, size, row in recs:
+                        row[k * size:k * size + size] = bus[at:at + size]
             except ModuleError as err:
                 err.recorded, err.ticks_done = out, k
                 raise
