@@ -223,6 +223,9 @@ def breakdown(world: World, ticks: int, repeats: int = 5) -> None:
     total, parts = best
     shown = ", ".join(f"{name} {t / ticks * 1e6:.1f}" for name, t in parts.items())
     print(f"     per tick (us): {shown}; kernel + history {(total - sum(parts.values())) / ticks * 1e6:.1f}")
+    groups = [", ".join(m.name for m in f.members) for f in world._structure.compiled._fused.values()]
+    if groups:
+        print(f"     (timed one by one; the world steps {'; '.join(groups)} as one call: `Module.fuse`)")
     record, get_state, bus_bytes = fork._record, fork.core.get_state, fork._mv.tobytes
     probes = fork._structure.output_check.probes(fork._buf, fork._mv)
     t0 = fork.tick_count

@@ -37,6 +37,7 @@ the encoders (default: every joint with a motor, in the order of the core's ``ct
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -44,6 +45,7 @@ import mujoco
 import numpy as np
 
 from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
+from dynabrain.orchestrator.kernel.structure import Copies
 
 from .mujoco.access import MujocoLink, fail
 
@@ -113,6 +115,9 @@ class Sensor(Module):
         """The fast path (no delay, no noise): each output copied straight from the core's data, as a
         memoryview copy for a contiguous run of the data (a third of the cost of a numpy copy), else
         by an index array."""
+        fused = self.__dict__.get("_fused_in")
+        if fused is not None:  # the sensors stepped with this one copy by the plans they had
+            fused.plan = None
         ready = hasattr(self, "_sources") and hasattr(self, "_writes")
         self._views, self._gathers = [], []
         for (port, _cut), (source, index) in zip(self._writes, self._sources, strict=True) if ready else ():
@@ -127,8 +132,16 @@ class Sensor(Module):
         """For a fork's deep copy: memoryviews do not copy; the copy plans its fast path again when it
         is bound (and when it first steps, on its own core)."""
         state = dict(self.__dict__)
-        state.update(_views=[], _gathers=[], _fast=False)
+        state.update(_views=[], _gathers=[], _fast=False, _fused_in=None)
         return state
+
+    @classmethod
+    def fuse(cls, members: Sequence[Module], copies: Sequence[Copies]) -> FusedSensors | None:
+        """Sensors next to each other in the schedule (any of this file's, due at the same ticks) step
+        as one call while they all take the fast path: their copies, in schedule order."""
+        if len(members) < 2 or any(not isinstance(m, Sensor) or type(m).step is not Sensor.step for m in members):
+            return None
+        return FusedSensors(members)  # type: ignore[arg-type]
 
     def start(self, t_ns: int) -> None:
         if self._link.changed():
@@ -227,6 +240,49 @@ class Sensor(Module):
 
     def _sample(self) -> np.ndarray:
         return np.concatenate([source[index] for source, index in self._sources])
+
+
+class FusedSensors:
+    """Sensors stepped as one (`Sensor.fuse`): while each of them takes its fast path (no delay, no
+    noise, ids resolved against the core's current model), one call makes all their copies in schedule
+    order, the same copies as their steps (so the same bits); otherwise each steps on its own, and the
+    copies are planned again after. A sensor that plans again (a noise level set, a new binding, the
+    core on another model) drops the plan. Four sensors of the humanoid: 0.35 us a tick against 0.83
+    for their four steps (`bench/humanoid.py`)."""
+
+    def __init__(self, members: Sequence[Sensor]):
+        self.members = tuple(members)
+        self.failing: str | None = None
+        self.plan: tuple | None = None  # (the core's view, the memoryview copies, the index copies)
+        for m in self.members:
+            m._fused_in = self
+
+    def bind(self, buf: np.ndarray) -> Callable[[int, int], None]:
+        self.plan = None  # the members bind after the tick is made: plan at the first call
+        core = self.members[0]._link.core
+
+        def step(t_ns: int, period_ns: int) -> None:
+            plan = self.plan
+            if plan is None or core.mj is not plan[0]:
+                self._one_by_one(t_ns, period_ns)
+                return
+            for dst, src in plan[1]:
+                dst[:] = src
+            for port, source, index in plan[2]:
+                port[...] = source[index]
+
+        return step
+
+    def _one_by_one(self, t_ns: int, period_ns: int) -> None:
+        for m in self.members:
+            self.failing = m.name
+            m.step(t_ns, period_ns)
+        self.failing = None
+        members = self.members
+        view = members[0]._link.core.mj
+        if all(m._fast and m._link.core.mj is view and m._link.seen is view for m in members):
+            self.plan = (view, tuple(c for m in members for c in m._views),
+                         tuple(g for m in members for g in m._gathers))
 
 
 def _contiguous(index: np.ndarray) -> slice | np.ndarray:

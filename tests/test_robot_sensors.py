@@ -240,3 +240,45 @@ def test_sensors_pass_check_module(make):
     report = check_module(make(), core=humanoid_core(), ticks=30)
     report.assert_ok()
     assert "step -> restore -> step" in report.checked and "fork" in report.checked
+
+
+def test_sensors_side_by_side_step_as_one_with_the_same_bits():
+    """Sensors next to each other in the schedule (of any kind, due at the same ticks) step as one call
+    in the generated tick (`FusedSensors`); a noise level set and cleared, a structure switch (the core
+    on another model), a backtick and a fork give the same bits as each sensor stepping on its own."""
+    def build(compiled: bool) -> World:
+        world = World("fuse", step="2ms", seed=4, history=60, core=humanoid_core(), compiled=compiled)
+        world.add_module(Encoders("enc"))
+        world.add_module(Servo("servo", sequence=[{"pose": STAND, "duration": "0.3s"}]),
+                         connect=[("enc.q", "servo.q"), ("enc.qd", "servo.qd"), ("servo.ctrl", "core.ctrl")])
+        for side in "lr":
+            world.add_module(ForceSensor(f"{side}_ft", targets=[f"{side}_foot_ft"]))
+        world.add_module(Accelerometer("acc", targets=["imu"]))
+        world.add_module(Gyro("gyro", targets=["imu"]))
+        return world
+
+    fused, plain = build(True), build(False)
+    assert "fused_l_ft_gyro(t_ns" in fused._structure.compiled.source
+
+    def both(action) -> None:
+        for w in (fused, plain):
+            action(w)
+        a, b = fused.snapshot(), plain.snapshot()
+        assert a.tick == b.tick and a.bus.tobytes() == b.bus.tobytes()
+
+    both(lambda w: w.tick(30))
+    both(lambda w: w.set("r_ft.noise", 0.3))
+    both(lambda w: w.tick(10))  # r_ft off its fast path: each sensor steps on its own
+    both(lambda w: w.set("r_ft.noise", 0.0))
+    both(lambda w: w.tick(10))
+    both(lambda w: w.no_collision(["l_foot", "r_foot"]))  # another compiled model: ids found again
+    both(lambda w: w.tick(10))
+    both(lambda w: w.backtick(25))
+    both(lambda w: w.tick(12))
+    forks = [w.fork() for w in (fused, plain)]
+    for f in forks:
+        f.tick(7)
+    assert forks[0].snapshot().bus.tobytes() == forks[1].snapshot().bus.tobytes()
+    assert not np.array_equal(fused.get("acc.acc"), np.zeros(3))
+    for w in (fused, plain, *forks):
+        w.close()

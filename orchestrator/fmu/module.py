@@ -238,7 +238,9 @@ class FMUModule(FMUModuleBase):
     def fuse(cls, members: Sequence[Module], copies: Sequence[Copies]) -> FusedFMUs | None:
         """A chain of FMU modules next to each other in the schedule steps in one call into the C
         helper (`orchestrator.fmu.fused`) while they all take the hot path of `step`."""
-        return FusedFMUs.make(members, copies) if cls is FMUModule else None  # type: ignore[arg-type]
+        if cls is not FMUModule or any(type(m) is not FMUModule for m in members):
+            return None
+        return FusedFMUs.make(members, copies)  # type: ignore[arg-type]
 
     def _fusable(self) -> bool:
         """Whether `step` would take its hot path (with or without states for history) on the C helper."""

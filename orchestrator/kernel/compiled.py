@@ -222,17 +222,18 @@ class CompiledTick:
 
 def _runs(dispatch: Sequence[Dispatch]) -> list[list[Dispatch]]:
     """The entries in schedule order, cut into runs that `Module.fuse` may step as one: next to each
-    other, modules of one class that fuses, due at the same ticks, with their copies made on the
-    memoryview (single values or plain slices). Every other entry is a run of its own."""
+    other, modules whose classes share one `Module.fuse` (other than the default), due at the same
+    ticks, with their copies made on the memoryview (single values or plain slices). Every other entry
+    is a run of its own. The fuse of the run's first class decides (and may decline: None)."""
     runs: list[list[Dispatch]] = []
     key = None  # what the last run shares, when it may grow
     for entry in dispatch:
         module = getattr(entry.step, "__self__", None)
-        cls = type(module)
-        fuses = (module is not None and getattr(cls.fuse, "__func__", None) is not _NO_FUSE and not entry.gather
+        fuse = getattr(type(module).fuse, "__func__", None) if module is not None else None
+        fuses = (fuse is not None and fuse is not _NO_FUSE and not entry.gather
                  and all(isinstance(i, (int, np.integer)) or (isinstance(i, slice) and i.step in (None, 1))
                          for pair in entry.copies for i in pair))
-        here = (cls, entry.period_ns, entry.period_ticks, entry.phase) if fuses else None
+        here = (fuse, entry.period_ns, entry.period_ticks, entry.phase) if fuses else None
         if here is not None and here == key:
             runs[-1].append(entry)
         else:

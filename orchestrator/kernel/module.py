@@ -387,12 +387,13 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
 
     @classmethod
     def fuse(cls, members: Sequence[Module], copies: Sequence[Copies]) -> Fused | None:
-        """Step ``members`` (modules of this class, next to each other in the schedule, due at the same
-        ticks) as one: a `Fused` that makes each member's input ``copies`` (``Copies`` on the bus, as
-        the tick makes them) and steps it, in schedule order, with the same results bit for bit as the
-        separate steps. The compiled tick asks when it is built; None (the default) keeps the steps
-        apart. A class answers when one call into its own code (compiled, say) is cheaper than the
-        members' calls from Python: the FMU module's C step helper does (`orchestrator.fmu.fused`)."""
+        """Step ``members`` (modules whose classes share this ``fuse``, next to each other in the
+        schedule, due at the same ticks; check that you can step each of them) as one: a `Fused` that
+        makes each member's input ``copies`` (``Copies`` on the bus, as the tick makes them) and steps
+        it, in schedule order, with the same results bit for bit as the separate steps. The compiled
+        tick asks when it is built; None (the default) keeps the steps apart. A class answers when one
+        call is cheaper than the members' calls from Python: the FMU module's C step helper does
+        (`orchestrator.fmu.fused`), and so do the MuJoCo sensors (`modules.sensors.FusedSensors`)."""
         return None
 
     def steps_change_state(self) -> bool:
