@@ -253,7 +253,8 @@ class FusedSensors:
     def __init__(self, members: Sequence[Sensor]):
         self.members = tuple(members)
         self.failing: str | None = None
-        self.plan: tuple | None = None  # (the core's view, the memoryview copies, the index copies)
+        self.plan: tuple | None = None  # (the core's view, the memoryview copies, the index copies); ()
+        # while a member is off its fast path; None: to be made after the members' next steps
         for m in self.members:
             m._fused_in = self
 
@@ -263,7 +264,7 @@ class FusedSensors:
 
         def step(t_ns: int, period_ns: int) -> None:
             plan = self.plan
-            if plan is None or core.mj is not plan[0]:
+            if not plan or core.mj is not plan[0]:
                 self._one_by_one(t_ns, period_ns)
                 return
             for dst, src in plan[1]:
@@ -278,11 +279,15 @@ class FusedSensors:
             self.failing = m.name
             m.step(t_ns, period_ns)
         self.failing = None
+        if self.plan is not None:  # () until a member plans again: one is off its fast path
+            return
         members = self.members
         view = members[0]._link.core.mj
         if all(m._fast and m._link.core.mj is view and m._link.seen is view for m in members):
             self.plan = (view, tuple(c for m in members for c in m._views),
                          tuple(g for m in members for g in m._gathers))
+        else:
+            self.plan = ()
 
 
 def _contiguous(index: np.ndarray) -> slice | np.ndarray:
