@@ -118,9 +118,11 @@ def test_a_recording_whose_scenario_no_longer_loads(tmp_path):
 def _run_until_killed(path: Path, whole_group: bool, sig: int = signal.SIGKILL) -> None:
     """`dynabrain run --log` until the log holds 400 kB, then a signal (SIGKILL by default): to the
     simulation's process alone, or to it and its writer process together (as a terminal sends Ctrl-C
-    to the whole foreground process group)."""
+    to the whole foreground process group). The run is 10 simulated hours, so it is still running then
+    even when a busy machine keeps the writer far behind it (600 s once ended first: the signal then
+    found it exiting with status 0)."""
     proc = subprocess.Popen([sys.executable, "-m", "dynabrain.orchestrator.cli", "run",
-                             str(SCENARIOS / "two_cubes.yaml"), "--log", str(path), "--duration", "600s", "-q"],
+                             str(SCENARIOS / "two_cubes.yaml"), "--log", str(path), "--duration", "36000s", "-q"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
