@@ -275,7 +275,7 @@ class World:
         self._apply(state)
         self._replay(ahead, inputs)
 
-    def _replay(self, ticks: int, inputs: Sequence[Sequence[tuple[int, bytes]] | None] = ()) -> None:
+    def _replay(self, ticks: int, inputs: Sequence[Sequence[tuple[int, bytes]] | None]) -> None:
         """Step ``ticks`` ticks again from the keyframe just applied, as they ran: no events (a keyframe
         follows every tick that had some), no history entries, no observers; ``inputs[k]``: the inputs
         written before the step after the k-th (`History.restore_point`), written again. Steps that do
