@@ -139,7 +139,8 @@ class Sensor(Module):
     def fuse(cls, members: Sequence[Module], copies: Sequence[Copies]) -> FusedSensors | None:
         """Sensors next to each other in the schedule (any of this file's, due at the same ticks) step
         as one call while they all take the fast path: their copies, in schedule order."""
-        if len(members) < 2 or any(not isinstance(m, Sensor) or type(m).step is not Sensor.step for m in members):
+        if (len(members) < 2 or any(copies)  # (a sensor that takes inputs steps on its own)
+                or any(not isinstance(m, Sensor) or type(m).step is not Sensor.step for m in members)):
             return None
         return FusedSensors(members)  # type: ignore[arg-type]
 
@@ -253,23 +254,22 @@ class FusedSensors:
     def __init__(self, members: Sequence[Sensor]):
         self.members = tuple(members)
         self.failing: str | None = None
-        self.plan: tuple | None = None  # (the core's view, the memoryview copies, the index copies); ()
-        # while a member is off its fast path; None: to be made after the members' next steps
+        self.plan: tuple | None = None  # (the core's view, the core, the memoryview copies, the index
+        # copies); () while a member is off its fast path; None: to be made after the members' next steps
         for m in self.members:
             m._fused_in = self
 
     def bind(self, buf: np.ndarray) -> Callable[[int, int], None]:
         self.plan = None  # the members bind after the tick is made: plan at the first call
-        core = self.members[0]._link.core
 
         def step(t_ns: int, period_ns: int) -> None:
             plan = self.plan
-            if not plan or core.mj is not plan[0]:
+            if not plan or plan[1].mj is not plan[0]:  # (the core on another model)
                 self._one_by_one(t_ns, period_ns)
                 return
-            for dst, src in plan[1]:
+            for dst, src in plan[2]:
                 dst[:] = src
-            for port, source, index in plan[2]:
+            for port, source, index in plan[3]:
                 port[...] = source[index]
 
         return step
@@ -282,9 +282,10 @@ class FusedSensors:
         if self.plan is not None:  # () until a member plans again: one is off its fast path
             return
         members = self.members
-        view = members[0]._link.core.mj
-        if all(m._fast and m._link.core.mj is view and m._link.seen is view for m in members):
-            self.plan = (view, tuple(c for m in members for c in m._views),
+        core = members[0]._link.core
+        view = core.mj
+        if all(m._fast and m._link.core is core and m._link.seen is view for m in members):
+            self.plan = (view, core, tuple(c for m in members for c in m._views),
                          tuple(g for m in members for g in m._gathers))
         else:
             self.plan = ()
