@@ -25,7 +25,7 @@ from timing import best_of, best_of_each
 
 from dynabrain.modules.basic import Counter
 from dynabrain.orchestrator.kernel.core import COLORS, BodySpec, SceneSpec
-from dynabrain.orchestrator.kernel.world import World
+from dynabrain.orchestrator.kernel.world import KEYFRAME_EVERY, World
 
 TARGETS = {1: 0.5, 20: 0.1}
 """Kernel overhead per module per tick at most (us), by number of modules."""
@@ -98,11 +98,10 @@ SELECTED = ["box_0_0", "box_5_5", "box_10_2", "box_15_7", "box_19_9"]
 
 
 def physics_world(scene: SceneSpec, select: list[str] | None = None, others: str = "frozen",
-                  keyframe_every: int | None = None) -> World:
+                  keyframe_every: int = KEYFRAME_EVERY) -> World:
     from dynabrain.modules.mujoco.core import MujocoCore
 
-    keyframes = {} if keyframe_every is None else {"keyframe_every": keyframe_every}
-    world = World("bench", step="2ms", history=200, core=MujocoCore("core", scene), **keyframes)
+    world = World("bench", step="2ms", history=200, core=MujocoCore("core", scene), keyframe_every=keyframe_every)
     if select is not None:
         world.make(select, others=others)
     world.tick(250)  # let the boxes settle into resting contact

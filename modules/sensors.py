@@ -78,6 +78,8 @@ class Sensor(Module):
     straight to the outputs."""
 
     PARAMS: ClassVar[tuple[Param, ...]] = (DELAY,)
+    _fused_in: FusedSensors | None = None
+    """The group this sensor steps in (`Sensor.fuse`), whose plan drops when this sensor plans again."""
 
     def channels(self) -> tuple[Channel, ...]:
         raise NotImplementedError
@@ -115,9 +117,8 @@ class Sensor(Module):
         """The fast path (no delay, no noise): each output copied straight from the core's data, as a
         memoryview copy for a contiguous run of the data (a third of the cost of a numpy copy), else
         by an index array."""
-        fused = self.__dict__.get("_fused_in")
-        if fused is not None:  # the sensors stepped with this one copy by the plans they had
-            fused.plan = None
+        if self._fused_in is not None:  # the sensors stepped with this one copy by the plans they had
+            self._fused_in.plan = None
         ready = hasattr(self, "_sources") and hasattr(self, "_writes")
         self._views, self._gathers = [], []
         for (port, _cut), (source, index) in zip(self._writes, self._sources, strict=True) if ready else ():

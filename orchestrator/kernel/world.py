@@ -744,9 +744,7 @@ class World:
                     raise WiringError(f"{target} has shape {slot.shape}, got a value of shape {arr.shape}")
                 values = arr.reshape(-1)
                 self._buf[slot.start:slot.start + slot.size] = values
-                if self._dirty or not self._history.written(self._tick, [(slot.start, values.tobytes())],
-                                                             self._mv.tobytes):
-                    self._dirty = True  # history could not keep the input: the next tick saves a whole state
+                self._keep_inputs([(slot.start, values.tobytes())])
                 self._emit("set", name=target, value=arr.tolist())
                 return
             module, key = target
@@ -1169,8 +1167,7 @@ class World:
                             spans.append((slot.start, row))
                             if self._observers:
                                 self._emit("set", name=name, value=values[k].reshape(slot.shape).tolist())
-                        if not self._dirty and not self._history.written(self._tick, spans, self._mv.tobytes):
-                            self._dirty = True  # (the state of this tick is saved with the inputs written in it)
+                        self._keep_inputs(spans)
                     self._step_once()
                     for at, size, row in recs:
                         row[k * size:k * size + size] = bus[at:at + size]
@@ -1178,6 +1175,13 @@ class World:
                 err.recorded, err.ticks_done = out, k
                 raise
             return out
+
+    def _keep_inputs(self, spans: list[tuple[int, bytes]]) -> None:
+        """Inputs just written into the bus at this tick (``(start, values as bytes)``), for history's
+        state of this tick (`History.written`); when history cannot take them, the next tick saves a
+        whole state."""
+        if not self._dirty and not self._history.written(self._tick, spans, self._mv.tobytes):
+            self._dirty = True
 
     def _drives(self, inputs: Mapping[str, Any], ticks: int) -> list[tuple[np.ndarray, str]]:
         drives = []
