@@ -21,6 +21,8 @@ from ..kernel.errors import DynabrainError
 from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 
 CONNECT_TIMEOUT_S = 10
+IN_FLIGHT = 2
+"""Branches handed to one actor at a time: the one it runs and the next."""
 """How long the first contact with a cluster may take (a TCP connection to its address)."""
 
 
@@ -80,29 +82,52 @@ class RayPool:
             raise DynabrainError(f"batch backend 'ray': a worker could not build its world: {_reason(exc)}") from None
 
     def map(self, tasks: Sequence[BranchTask]) -> list[BranchOutcome]:
-        """Every task's outcome, in the order of ``tasks``."""
+        """Every task's outcome, in the order of ``tasks``. Each actor has up to `IN_FLIGHT` branches
+        handed to it (Ray runs an actor's calls one after the other, in order), so it starts its next
+        branch while the driver takes the last one's outcome."""
         ray = self.ray
         queue = deque(tasks)
-        idle = list(self._actors)
-        running: dict[Any, tuple[Any, BranchTask]] = {}
+        handed: dict[Any, deque[Any]] = {actor: deque() for actor in self._actors}  # refs, in the order given
+        owner: dict[Any, tuple[Any, BranchTask]] = {}
         outcomes: dict[int, BranchOutcome] = {}
-        while queue or running:
-            while queue and idle:
-                actor, task = idle.pop(), queue.popleft()
-                running[actor.run.remote(task)] = (actor, task)
-            done, _ = ray.wait(list(running), num_returns=1)
+
+        def feed(actor: Any) -> None:
+            refs = handed[actor]
+            while queue and len(refs) < IN_FLIGHT:
+                task = queue.popleft()
+                ref = actor.run.remote(task)
+                refs.append(ref)
+                owner[ref] = (actor, task)
+
+        for actor in self._actors:
+            feed(actor)
+        while owner:
+            done, _ = ray.wait(list(owner), num_returns=1)
             for ref in done:
-                actor, task = running.pop(ref)
+                if ref not in owner:  # a branch given back to the queue with its actor's death (below)
+                    continue
+                actor, task = owner[ref]
                 try:
                     outcomes[task.index] = ray.get(ref)
                 except ray.exceptions.RayActorError as exc:
-                    outcomes[task.index] = BranchOutcome(task.index, {}, None, BranchStatus(
-                        False, f"the Ray worker running branch {task.index} died ({_reason(exc)})"))
+                    # the first branch handed to it was running; those after it never started: they go
+                    # back to the queue, for the actor that takes its place
+                    first, *later = handed.pop(actor)
+                    running = owner.pop(first)[1]
+                    outcomes[running.index] = BranchOutcome(running.index, {}, None, BranchStatus(
+                        False, f"the Ray worker running branch {running.index} died ({_reason(exc)})"))
+                    for other in reversed(later):
+                        queue.appendleft(owner.pop(other)[1])
                     actor = self._replace(actor)
+                    handed[actor] = deque()
+                    feed(actor)
+                    continue
                 except ray.exceptions.RayError as exc:
                     outcomes[task.index] = BranchOutcome(task.index, {}, None, BranchStatus(
                         False, f"branch {task.index} failed in Ray: {_reason(exc)}"))
-                idle.append(actor)
+                del owner[ref]
+                handed[actor].remove(ref)
+                feed(actor)
         return [outcomes[t.index] for t in tasks]
 
     def _replace(self, dead: Any) -> Any:
