@@ -1,5 +1,6 @@
-"""The ``processes`` backend: worker processes, each with a world of its own, fed one branch at a
-time (a worker that finishes takes the next), so every core is busy until the batch is done.
+"""The ``processes`` backend: worker processes, each with a world of its own, fed branches as they
+finish them (two at a time when all start from one state, so none waits between two), so every core
+is busy until the batch is done.
 
 A worker that dies (killed, a segfault in an FMU) fails the branch it was running, with the cause,
 and is replaced; the other branches go on. Tasks and outcomes cross a private socket pair as pickles
@@ -23,12 +24,15 @@ from .messages import Init, InitFailed, Ready, Stop
 
 START_TIMEOUT_S = 120.0
 """How long a worker may take to build its world (a cold import of MuJoCo and a model compile)."""
+IN_FLIGHT = 2
+"""Branches handed to one worker at a time when they all start from one state: the one it runs and
+the next."""
 
 
 class _Worker:
     def __init__(self, proc: Popen, conn: Connection):
         self.proc, self.conn = proc, conn
-        self.task: BranchTask | None = None
+        self.handed: deque[BranchTask] = deque()  # the branches it was sent and has not answered, in order
         self.last: bytes | None = None  # the state its world ended the last branch in
 
     def cause(self) -> str:
@@ -110,31 +114,39 @@ class ProcessPool:
         assert isinstance(answer, Ready)
 
     def map(self, tasks: Sequence[BranchTask]) -> list[BranchOutcome]:
-        """Every task's outcome, in the order of ``tasks``."""
+        """Every task's outcome, in the order of ``tasks``. When every branch starts from the same state
+        (futures fanned out from one), a worker is handed `IN_FLIGHT` at a time, so it starts the next
+        as soon as it answers; branches that go on from others (a vector env's steps) go one at a time,
+        each to the worker whose world ended where it starts (`_take`: no state to import)."""
         queue = deque(tasks)
+        depth = IN_FLIGHT if len({id(t.start) for t in tasks}) <= 1 else 1
         outcomes: dict[int, BranchOutcome] = {}
-        idle = list(self._workers)
-        busy: dict[Connection, _Worker] = {}
-        while queue or busy:
-            while queue and idle:
-                worker = idle.pop()
-                worker.task = _take(queue, worker.last)
-                with contextlib.suppress(OSError):  # died while idle: read back as a death below
-                    worker.conn.send(worker.task)
-                busy[worker.conn] = worker
+        for worker in self._workers:
+            worker.handed.clear()
+        while queue or any(w.handed for w in self._workers):
+            for worker in self._workers:
+                while queue and len(worker.handed) < depth:
+                    task = _take(queue, worker.last if not worker.handed else None)
+                    worker.handed.append(task)
+                    with contextlib.suppress(OSError):  # died: read back as a death below
+                        worker.conn.send(task)
+            busy = {w.conn: w for w in self._workers if w.handed}
             for conn in wait(list(busy)):
-                worker = busy.pop(conn)
-                task = worker.task
-                assert task is not None
+                worker = busy[conn]
                 try:
                     outcome = conn.recv()
                 except (EOFError, OSError):
-                    outcome = BranchOutcome(task.index, {}, None, BranchStatus(
-                        False, f"the worker process running branch {task.index} died ({worker.cause()})"))
-                    worker = self._replace(worker)
+                    # the first branch it was handed was running; those after it never started: they go
+                    # back to the queue, for the worker that takes its place
+                    running, *later = worker.handed
+                    outcomes[running.index] = BranchOutcome(running.index, {}, None, BranchStatus(
+                        False, f"the worker process running branch {running.index} died ({worker.cause()})"))
+                    queue.extendleft(reversed(later))
+                    self._replace(worker)
+                    continue
+                task = worker.handed.popleft()
                 outcomes[task.index] = outcome
-                worker.task, worker.last = None, outcome.state
-                idle.append(worker)
+                worker.last = outcome.state
         return [outcomes[t.index] for t in tasks]
 
     def _replace(self, dead: _Worker) -> _Worker:

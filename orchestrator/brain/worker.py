@@ -3,14 +3,18 @@
 
 Over its end of the socket pair it takes one `Init` (how to build its world), answers `Ready` (or
 `InitFailed` with the reason), then runs each `BranchTask` it is sent and answers its
-`BranchOutcome`, until `Stop` or the end of the pipe. Only the parent that started it speaks to it.
+`BranchOutcome`, in order, until `Stop` or the end of the pipe. A thread reads the pipe while a branch
+runs, so the parent can hand over the next branch before this one ends (neither side then waits on
+the other's full pipe). Only the parent that started it speaks to it.
 """
 
 from __future__ import annotations
 
 import os
+import queue
 import signal
 import sys
+import threading
 import traceback
 from multiprocessing.connection import Connection
 
@@ -26,13 +30,24 @@ def serve(conn: Connection) -> None:
         conn.send(InitFailed(f"{type(exc).__name__}: {exc}\n{traceback.format_exc(limit=4)}"))
         return
     conn.send(Ready(os.getpid()))
-    try:
+    inbox: queue.SimpleQueue[object] = queue.SimpleQueue()
+
+    def read() -> None:  # the pipe is read while a branch runs: the parent may hand over the next one
         while True:
             try:
                 msg = conn.recv()
-            except EOFError:
+            except (EOFError, OSError):
+                inbox.put(None)
                 return
+            inbox.put(msg)
             if isinstance(msg, Stop):
+                return
+
+    threading.Thread(target=read, name="dynabrain-batch-inbox", daemon=True).start()
+    try:
+        while True:
+            msg = inbox.get()
+            if msg is None or isinstance(msg, Stop):
                 return
             if isinstance(msg, BranchTask):
                 conn.send(runner.run(msg))
