@@ -111,9 +111,15 @@ def _positions(index: slice | np.ndarray) -> np.ndarray:
 
 
 def _move(dst: np.ndarray, di, src: np.ndarray, si) -> tuple:
-    if isinstance(di, slice) and isinstance(si, slice) and _plain(dst) and _plain(src):
-        return (memoryview(dst), di, memoryview(src), si)
-    return (dst, di, src, si)
+    """One copy of `MujocoCore.step` as ``(target, index, source, gather)``: ``target[index] = source``,
+    or ``target[index] = source[gather]`` for an index array. A slice of the source is taken once, here
+    (a view; about 0.1 us less a copy), and a copy from slice to slice of plain arrays goes through
+    memoryviews (a memcpy)."""
+    if not isinstance(si, slice):
+        return (dst, di, src, si)
+    if isinstance(di, slice) and _plain(dst) and _plain(src):
+        return (memoryview(dst), di, memoryview(src)[si], None)
+    return (dst, di, src[si], None)
 
 
 @dataclass(frozen=True, eq=False)
@@ -486,7 +492,7 @@ class MujocoCore(EditedCore):
         if moves is None or moves[0] is not s:
             moves = self._moves = (s, *self._plan_moves(s))
         for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls, wrenches
-            dst[di] = src[si]
+            dst[di] = src if si is None else src[si]
         if self._vel.tobytes() != self._vel_unset:  # a velocity input holds a value
             self._set_velocities(s)
         m, d = s.model, s.data
@@ -498,7 +504,7 @@ class MujocoCore(EditedCore):
         if bad != s.warnings_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
             raise PhysicsDivergedError(self.name, "step", None, self._divergence(s, bad))
         for dst, di, src, si in moves[2]:  # the outputs that can change in a step (`_write_outputs`)
-            dst[di] = src[si]
+            dst[di] = src if si is None else src[si]
 
     def get_state(self) -> tuple:
         s = self._compiled
@@ -642,7 +648,7 @@ class MujocoCore(EditedCore):
         if moves is None or moves[0] is not s:
             moves = self._moves = (s, *self._plan_moves(s))
         for dst, di, src, si in moves[2]:
-            dst[di] = src[si]
+            dst[di] = src if si is None else src[si]
 
     def _plan_moves(self, s: CompiledScene) -> tuple[list[tuple], list[tuple]]:
         """The copies `step` makes from the inputs and `_write_outputs` into the outputs, as
