@@ -160,8 +160,9 @@ def measure(step: str, ticks: int = 1000) -> None:
     print(f"     raw loop (same work, inline):     {t_raw * 1e6:8.1f} us")
     for label, t_tick in ((f"default (keyframes every {KEYFRAMES})", t_keyed), ("a state every tick", t_world)):
         ratio = t_tick / t_raw
-        print(f"     orchestrated, {label + ':':<31}{t_tick * 1e6:6.1f} us   ratio / raw {ratio:5.3f}   "
-              f"target <= {TARGET}: {'met' if ratio <= TARGET else 'MISSED'}")
+        verdict = (f"target <= {TARGET}: {'met' if ratio <= TARGET else 'MISSED'}" if t_tick is t_keyed
+                   else "(for comparison: the target is the default world's)")
+        print(f"     orchestrated, {label + ':':<31}{t_tick * 1e6:6.1f} us   ratio / raw {ratio:5.3f}   {verdict}")
     print(f"     real-time factor: orchestrated {dt / t_keyed:6.1f}, raw {dt / t_raw:6.1f}; computing per "
           f"simulated second: {t_keyed / dt:.3f} s (paper: 0.74 s)")
     backtick_trade(world, keyed)
