@@ -116,6 +116,9 @@ class IkResult:
     errors: tuple[FrameError, ...]
     iterations: int
     message: str
+    q_full: np.ndarray | None = None
+    """The whole configuration of the pose (the model's ``qpos``: a free base, every other joint as it was
+    held); ``solve(start=result)`` starts the next search from it, to chain poses."""
 
     @property
     def position_error_m(self) -> float:
@@ -214,12 +217,24 @@ class InverseKinematics:
             ids.append(jid)
         qpos_adr = np.array([m.jnt_qposadr[j] for j in ids], dtype=np.intp)
         dof_adr = np.array([m.jnt_dofadr[j] for j in ids], dtype=np.intp)
-        held = sorted(set(range(m.nv)) - {int(d) for d in dof_adr})
+        free = {int(d) for d in self._free_dofs(m)}
+        held = sorted(set(range(m.nv)) - {int(d) for d in dof_adr} - free)
         constraints = [mink.DofFreezingTask(m, dof_indices=held)] if held else []
         steps = mink.VelocityLimit(m, {j: MAX_STEP["slide" if s else "hinge"]
                                        for j, s in zip(self.joints, self.slides, strict=True)})
-        self._problem = _Problem(view, qpos_adr, dof_adr, [_ActiveLimit(m, dof_adr), steps], constraints)
+        active = np.array(sorted({int(d) for d in dof_adr} | free), dtype=np.intp)
+        self._problem = _Problem(view, qpos_adr, dof_adr, [_ActiveLimit(m, active), steps], constraints)
         return self._problem
+
+    def _free_dofs(self, m: mujoco.MjModel) -> np.ndarray:
+        """Degrees of freedom besides the chosen joints that the solver may move (none: the whole-body
+        solver frees the robot's floating base)."""
+        return np.zeros(0, dtype=np.intp)
+
+    def _support(self, m: mujoco.MjModel, config: mink.Configuration, call: str) -> tuple[list, list]:
+        """Tasks and checks the solver adds to the targets' own (none: the whole-body solver holds the
+        feet and the centre of mass), made from the start configuration."""
+        return [], []
 
     def frame_pose(self, frame: str, kind: str = "site") -> tuple[np.ndarray, np.ndarray]:
         """(position (3,) m, orientation quaternion (w, x, y, z)) of a frame now, in the world frame."""
@@ -247,15 +262,17 @@ class InverseKinematics:
         return fid
 
     # -- solving ------------------------------------------------------------------------------------------
-    def solve(self, targets: Target | Sequence[Target], *, start: Sequence[float] | Mapping[str, float] | None = None,
+    def solve(self, targets: Target | Sequence[Target], *,
+              start: Sequence[float] | Mapping[str, float] | IkResult | None = None,
               tol_m: float = 1e-3, tol_rad: float = 1e-2, max_iters: int = 400,
               damping: float = 1e-4) -> IkResult:
         """The joint values that bring every target's frame to its target (see the module docstring).
 
-        ``start``: the joints' values to search from (SI, the joints' order, or ``{joint: value}``;
-        default: where the core has them now). ``tol_m`` / ``tol_rad``: how close counts as reached.
-        ``max_iters``: iterations at most (each one quadratic program); the search also stops when it no
-        longer gets closer. ``damping``: mink's Levenberg-Marquardt damping (near singular poses).
+        ``start``: the joints' values to search from (SI, the joints' order, or ``{joint: value}``, or an
+        earlier result: its whole configuration; default: where the core has them now). ``tol_m`` /
+        ``tol_rad``: how close counts as reached. ``max_iters``: iterations at most (each one quadratic
+        program); the search also stops when it no longer gets closer. ``damping``: mink's
+        Levenberg-Marquardt damping (near singular poses).
         """
         call = f"{self.CALL}.solve"
         targets = [targets] if isinstance(targets, Target) else list(targets)
@@ -270,6 +287,8 @@ class InverseKinematics:
         m = problem.view.model
         tasks, checks, follows = self._tasks(m, targets, call)
         config = mink.Configuration(m, self._start(problem, start, call))
+        more_tasks, more_checks = self._support(m, config, call)
+        tasks, checks = tasks + more_tasks, checks + more_checks
         best_q, best_errors = config.q.copy(), tuple(check(config) for check in checks)  # the start is a candidate
         best_score = _score(best_errors)
         stalled, iterations = 0, 0
@@ -294,8 +313,9 @@ class InverseKinematics:
         reached = all(e.position_m <= tol_m and e.orientation_rad <= tol_rad for e in best_errors)
         q = best_q[problem.qpos_adr].copy()
         q.setflags(write=False)
+        best_q.setflags(write=False)
         return IkResult(reached, q, self.joints, self.slides, best_errors, iterations,
-                        self._message(reached, best_errors, tol_m, tol_rad))
+                        self._message(reached, best_errors, tol_m, tol_rad), best_q)
 
     @staticmethod
     def _message(reached: bool, errors: tuple[FrameError, ...], tol_m: float, tol_rad: float) -> str:
@@ -313,6 +333,10 @@ class InverseKinematics:
         q = np.array(problem.view.data.qpos, dtype=np.float64)
         if start is None:
             return q
+        if isinstance(start, IkResult):
+            if start.q_full is None or start.q_full.shape != q.shape:
+                raise _fail(call, "start", "that result is of another model (the core's structure changed since)")
+            return np.array(start.q_full, dtype=np.float64)
         n = len(self.joints)
         if isinstance(start, Mapping):
             for key, value in start.items():
