@@ -10,9 +10,23 @@
 
 Each branch starts from a state (the world's now, or one per branch: `World.export_state` bytes or
 snapshots of the world), takes its own parameter overrides (set before its first tick) and per-tick
-values for input ports, runs ``ticks`` ticks and records the signals asked for. A branch is exactly
-`branch.run_branch` on a world of its own; its result is bit-identical to the same inputs stepped
-alone on the world in-process, whatever the backend.
+values for input ports, runs ``ticks`` ticks (one count for all, or one per branch) and records the
+signals asked for. A branch is exactly `branch.run_branch` on a world of its own; its result is
+bit-identical to the same inputs stepped alone on the world in-process, whatever the backend, and
+whatever the other branches of its batch are.
+
+Branches of different lengths share one batch (a planner's pushes and waits, a controller's horizons)::
+
+    result = batch.run([40, 100, 250], starts=[s0, s1, s1],
+                       inputs={"mover.velocity": [v40, v100, v250]})    # (ticks of each, *port)
+    result.signals["box.pos"]              # (3, 250, 3): rows past a branch's ticks are NaN
+
+``submit`` takes the same request and returns a future at once (a controller goes on stepping its
+world; `concurrent.futures.Future.result` takes the batch later)::
+
+    future = batch.submit(50, branches=8, inputs={("left.target", "right.target"): mirrored})
+    ...                                    # one sequence broadcast to several ports
+    result = future.result()
 
 Backends, one API:
 
@@ -26,16 +40,19 @@ Backends, one API:
 - ``auto``: ``processes`` when the machine has more than one core and the world can be rebuilt,
   else ``serial``.
 
-Nothing of the world changes during a batch: it is only read (its state exported) when a run starts.
-Every name, shape and count is checked before anything runs.
+Nothing of the world changes during a batch: it is only read (its state exported) when a run starts
+or is submitted. Every name, shape and count is checked before anything runs. Batches run one after
+the other, in the order they were asked for: `run` waits for those submitted before it.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -69,9 +86,10 @@ class BranchStatuses:
 @dataclass
 class BatchResult(BranchStatuses):
     """What a batch returns. ``signals[name]`` has shape ``(branches, ticks, *signal shape)``, row k the
-    value after tick k+1 (NaN for ticks a failed branch did not run); ``states[b]`` is branch b's final
-    state as `World.export_state` bytes (None when not kept or when its worker died); ``status[b]`` says
-    whether it ran to the end."""
+    value after tick k+1 (NaN for ticks a failed branch did not run, and past the end of a branch shorter
+    than the longest); ``states[b]`` is branch b's final state as `World.export_state` bytes (None when
+    not kept or when its worker died); ``status[b]`` says whether it ran to the end. ``ticks`` is the
+    longest branch's count, ``branch_ticks[b]`` branch b's."""
 
     signals: dict[str, np.ndarray]
     states: list[bytes | None]
@@ -79,6 +97,11 @@ class BatchResult(BranchStatuses):
     ticks: int
     backend: str
     wall_s: float
+    branch_ticks: list[int] = field(default_factory=list)
+
+    def branch(self, name: str, b: int) -> np.ndarray:
+        """What branch ``b`` recorded of ``name``, its own ticks only: ``(branch_ticks[b], *shape)``."""
+        return self.signals[name][b, :self.branch_ticks[b]] if self.branch_ticks else self.signals[name][b]
 
     @property
     def ticks_per_s(self) -> float:
@@ -133,28 +156,74 @@ class Batch:
         self._pool: Any = None
         self._scratch: BranchRunner | None = None
         self._issued: dict[int, bytes] = {}  # final states this batch returned: starts that need no check
+        self._issued_lock = threading.Lock()  # written by the thread that runs submitted batches
+        self._runner: ThreadPoolExecutor | None = None  # runs submitted batches, one after the other
+        self._last: Future[BatchResult] | None = None  # the batch submitted last
+
+    @property
+    def parallelism(self) -> int:
+        """How many branches this batch steps at once (1 on ``serial``): what a caller fills a batch to."""
+        if self.backend == "serial":
+            return 1
+        if self._pool is not None and hasattr(self._pool, "size"):
+            return int(self._pool.size)
+        return self.workers or os.cpu_count() or 1
 
     # -- running -----------------------------------------------------------------------------------------
-    def run(self, ticks: int, *, branches: int | None = None,
+    def run(self, ticks: int | Sequence[int], *, branches: int | None = None,
             starts: bytes | WorldState | Sequence[bytes | WorldState] | None = None,
-            inputs: Mapping[str, Any] | None = None, params: Mapping[str, Any] | None = None,
+            inputs: Mapping[str | tuple[str, ...], Any] | None = None, params: Mapping[str, Any] | None = None,
             record: Sequence[str] = (), keep_states: bool = True) -> BatchResult:
         """Run ``branches`` futures for ``ticks`` ticks each and return what they recorded.
 
-        ``starts``: None (the world now, for every branch), one state for all, or one per branch
-        (`World.export_state` bytes or snapshots of the world). ``inputs``: input port -> values of
-        shape ``(ticks, *port)`` for every branch or ``(branches, ticks, *port)``. ``params``: run-time
-        parameter -> one value for every branch, or a sequence of one value per branch. ``record``:
-        signals to return. The branch count comes from ``branches`` or from a per-branch ``starts``.
+        ``ticks``: one count for every branch, or one per branch. ``starts``: None (the world now, for
+        every branch), one state for all, or one per branch (`World.export_state` bytes or snapshots of
+        the world). ``inputs``: input port (or a tuple of ports: the same values for each) -> values of
+        shape ``(ticks, *port)`` for every branch, ``(branches, ticks, *port)``, or a list of one
+        ``(ticks of that branch, *port)`` array per branch (with counts per branch, a branch takes the
+        first rows of a longer array). ``params``: run-time parameter -> one value for every branch, or
+        a sequence of one value per branch. ``record``: signals to return. The branch count comes from
+        ``branches``, a per-branch ``ticks`` or a per-branch ``starts``. Waits for submitted batches.
         """
         tasks = self._tasks(ticks, branches, starts, inputs or {}, params or {}, tuple(record), keep_states)
+        if self._last is not None:
+            self._last.exception()  # in order: the batches submitted before this one first
+        return self._map(tasks, tuple(record))
+
+    def submit(self, ticks: int | Sequence[int], *, branches: int | None = None,
+               starts: bytes | WorldState | Sequence[bytes | WorldState] | None = None,
+               inputs: Mapping[str | tuple[str, ...], Any] | None = None, params: Mapping[str, Any] | None = None,
+               record: Sequence[str] = (), keep_states: bool = True) -> Future[BatchResult]:
+        """`run` without waiting: the request is checked and its start states read now (the world may
+        go on stepping), and a future returned; a thread of this batch runs it after those submitted
+        before it. ``future.result()`` is its `BatchResult`, or raises what `run` would have raised."""
+        tasks = self._tasks(ticks, branches, starts, inputs or {}, params or {}, tuple(record), keep_states)
+        self._prepare()  # what reads the world is made here, on the caller's thread
+        if self._runner is None:
+            self._runner = ThreadPoolExecutor(1, thread_name_prefix="dynabrain-batch")
+        self._last = self._runner.submit(self._map, tasks, tuple(record))
+        return self._last
+
+    def _map(self, tasks: list[BranchTask], record: tuple[str, ...]) -> BatchResult:
         t0 = time.perf_counter()
         outcomes = self._backend().map(tasks) if self.backend != "serial" else [self._serial(t) for t in tasks]
         wall = time.perf_counter() - t0
-        if len(self._issued) > 4096:
-            self._issued.clear()
-        self._issued.update((id(o.state), o.state) for o in outcomes if o.state is not None)
-        return _assemble(outcomes, tasks, self._shapes(record), ticks, self.backend, wall)
+        with self._issued_lock:
+            if len(self._issued) > 4096:
+                self._issued.clear()
+            self._issued.update((id(o.state), o.state) for o in outcomes if o.state is not None)
+        return _assemble(outcomes, tasks, self._shapes(record), self.backend, wall)
+
+    def _prepare(self) -> None:
+        """Make the private world or the workers before a batch runs on another thread (the serial
+        backend's fork and the threads backend's scratch world are copies of the world, read now)."""
+        if self.backend == "serial":
+            if self._scratch is None:
+                self._scratch = BranchRunner(lambda: self.world.fork(self.world.name))
+            return
+        pool = self._backend()
+        if hasattr(pool, "prepare"):
+            pool.prepare()
 
     def _serial(self, task: BranchTask) -> BranchOutcome:
         if self._scratch is None:
@@ -178,31 +247,44 @@ class Batch:
         return self._pool
 
     # -- checking the request -------------------------------------------------------------------------------
-    def _tasks(self, ticks: int, branches: int | None, starts: Any, inputs: Mapping[str, Any],
+    def _tasks(self, ticks: Any, branches: int | None, starts: Any, inputs: Mapping[Any, Any],
                params: Mapping[str, Any], record: tuple[str, ...], keep: bool) -> list[BranchTask]:
-        if isinstance(ticks, bool) or not isinstance(ticks, (int, np.integer)) or ticks < 1:
-            raise DynabrainError(f"batch: ticks must be a positive integer, got {ticks!r}")
-        ticks = int(ticks)
         per_branch = isinstance(starts, Sequence) and not isinstance(starts, (bytes, bytearray))
+        counts = _tick_counts(ticks)
         if branches is None:
-            if not per_branch:
-                raise DynabrainError("batch: say how many branches (branches=N), or give one start state per branch")
-            branches = len(starts)
+            if counts is not None:
+                branches = len(counts)
+            elif per_branch:
+                branches = len(starts)
+            else:
+                raise DynabrainError("batch: say how many branches (branches=N), or give one start state or one tick "
+                                     "count per branch")
         if isinstance(branches, bool) or not isinstance(branches, (int, np.integer)) or branches < 1:
             raise DynabrainError(f"batch: the branch count must be a positive integer, got {branches!r}")
         branches = int(branches)
         if per_branch and len(starts) != branches:
             raise DynabrainError(f"batch: {len(starts)} start states for {branches} branches")
+        if counts is not None and len(counts) != branches:
+            raise DynabrainError(f"batch: {len(counts)} tick counts for {branches} branches")
+        lengths = counts if counts is not None else [int(ticks)] * branches
         if per_branch:
             seen: dict[int, bytes] = {}  # the same object given for many branches is checked once
             start_bytes = [seen.get(id(s)) or seen.setdefault(id(s), self._state_bytes(s, f"starts[{b}]"))
                            for b, s in enumerate(starts)]
         else:
             start_bytes = [self._state_bytes(starts, "starts")] * branches
-        drives = {name: self._input_values(name, values, branches, ticks) for name, values in inputs.items()}
+        drives: dict[str, list[np.ndarray]] = {}
+        for key, values in inputs.items():
+            ports = key if isinstance(key, tuple) else (key,)
+            if not ports:
+                raise WiringError("batch: an empty tuple of ports in inputs=")
+            for name in ports:
+                if name in drives:
+                    raise WiringError(f"batch: input {name!r} is given twice in inputs=")
+                drives[name] = self._input_values(name, values, lengths, counts is not None)
         overrides = {name: self._param_values(name, values, branches) for name, values in params.items()}
         self._shapes(record)  # unknown signals: an error now
-        return [BranchTask(b, start_bytes[b], ticks, {n: v[b] for n, v in drives.items()},
+        return [BranchTask(b, start_bytes[b], lengths[b], {n: v[b] for n, v in drives.items()},
                            {n: v[b] for n, v in overrides.items()}, record, keep) for b in range(branches)]
 
     def _state_bytes(self, start: Any, what: str) -> bytes:
@@ -210,7 +292,9 @@ class Batch:
             return self.world.export_state()
         if isinstance(start, WorldState):
             return self.world.export_state(start)
-        if self._issued.get(id(start)) is start:  # one of this batch's own results
+        with self._issued_lock:
+            own = self._issued.get(id(start)) is start
+        if own:  # one of this batch's own results
             return start
         if isinstance(start, (bytes, bytearray, memoryview)):
             try:
@@ -221,18 +305,33 @@ class Batch:
         raise DynabrainError(f"batch: {what} is a {type(start).__name__}; a start state is export_state bytes or a "
                              "snapshot of the world")
 
-    def _input_values(self, name: str, values: Any, branches: int, ticks: int) -> np.ndarray:
+    def _input_values(self, name: str, values: Any, lengths: list[int], ragged: bool) -> list[np.ndarray]:
+        """One ``(ticks of the branch, *port)`` array per branch (views where they can be)."""
         full = self.world.settable(name)
         if not isinstance(full, str):
             raise WiringError(f"batch: {name!r} is a parameter; give it in params=, inputs are input ports")
         shape = np.shape(self.world.get(full))
+        branches, longest = len(lengths), max(lengths)
+        if isinstance(values, (list, tuple)) and len(values) == branches and all(
+                np.ndim(v) == len(shape) + 1 for v in values):  # one array per branch
+            arrays = [np.asarray(v, dtype=np.float64) for v in values]
+            for b, (arr, ticks) in enumerate(zip(arrays, lengths, strict=True)):
+                if arr.shape[1:] != shape or len(arr) < ticks:
+                    raise WiringError(f"batch: the values for input {full} of branch {b} have shape {arr.shape}; a "
+                                      f"port of shape {shape} over {ticks} ticks needs {(ticks, *shape)}")
+            return [arr[:ticks] for arr, ticks in zip(arrays, lengths, strict=True)]
         arr = np.asarray(values, dtype=np.float64)
-        if arr.shape == (ticks, *shape):
-            return np.broadcast_to(arr, (branches, ticks, *shape))
-        if arr.shape != (branches, ticks, *shape):
+        fits = (arr.shape[1:] == shape and len(arr) >= longest) if ragged else arr.shape == (longest, *shape)
+        if fits:
+            return [arr[:ticks] for ticks in lengths]
+        fits = (arr.shape[0] == branches and arr.shape[2:] == shape and arr.shape[1] >= longest) if ragged and \
+            arr.ndim == len(shape) + 2 else arr.shape == (branches, longest, *shape)
+        if not fits:
+            per = f"{longest} ticks" if not ragged else f"up to {longest} ticks"
             raise WiringError(f"batch: the values for input {full} have shape {arr.shape}; a port of shape {shape} "
-                              f"over {ticks} ticks needs {(ticks, *shape)} or {(branches, ticks, *shape)}")
-        return arr
+                              f"over {per} needs {(longest, *shape)}, {(branches, longest, *shape)} or a list of "
+                              "one (ticks, *port) array per branch")
+        return [arr[b, :ticks] for b, ticks in enumerate(lengths)]
 
     def _param_values(self, name: str, values: Any, branches: int) -> list[Any]:
         if self.world.material_target(name) is not None:  # a body's own friction or restitution
@@ -272,7 +371,10 @@ class Batch:
 
     # -- closing ----------------------------------------------------------------------------------------------
     def close(self) -> None:
-        """Stop the workers (or the private world of ``serial``)."""
+        """Stop the workers (or the private world of ``serial``), after the submitted batches end."""
+        if self._runner is not None:
+            self._runner.shutdown(wait=True)
+            self._runner, self._last = None, None
         if self._pool is not None:
             self._pool.close()
             self._pool = None
@@ -287,10 +389,25 @@ class Batch:
         self.close()
 
 
+def _tick_counts(ticks: Any) -> list[int] | None:
+    """One tick count per branch when ``ticks`` is a sequence, None when it is one count for all;
+    either checked (positive integers)."""
+    many = isinstance(ticks, (Sequence, np.ndarray)) and not isinstance(ticks, (str, bytes))
+    for t in ticks if many else [ticks]:
+        if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 1:
+            raise DynabrainError(f"batch: ticks must be a positive integer (or one per branch), got {t!r}")
+    if many and not len(ticks):
+        raise DynabrainError("batch: an empty list of tick counts")
+    return [int(t) for t in ticks] if many else None
+
+
 def _assemble(outcomes: Sequence[BranchOutcome], tasks: Sequence[BranchTask], shapes: dict[str, tuple[int, ...]],
-              ticks: int, backend: str, wall: float) -> BatchResult:
-    signals = {name: np.full((len(tasks), ticks, *shape), np.nan) for name, shape in shapes.items()}
+              backend: str, wall: float) -> BatchResult:
+    lengths = [t.ticks for t in tasks]
+    longest = max(lengths)
+    signals = {name: np.full((len(tasks), longest, *shape), np.nan) for name, shape in shapes.items()}
     for b, outcome in enumerate(outcomes):
         for name, values in outcome.signals.items():
-            signals[name][b] = values
-    return BatchResult(signals, [o.state for o in outcomes], [o.status for o in outcomes], ticks, backend, wall)
+            signals[name][b, :len(values)] = values
+    return BatchResult(signals, [o.state for o in outcomes], [o.status for o in outcomes], longest, backend, wall,
+                       lengths)

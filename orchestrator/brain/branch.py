@@ -39,12 +39,15 @@ class BranchTask:
 @dataclass(frozen=True)
 class BranchStatus:
     """How a branch ended: ``ok``, or failed with ``reason`` at ``failed_tick`` (the world's tick the
-    failure rolled back to; None when it failed before its first tick or its worker died)."""
+    failure rolled back to; None when it failed before its first tick or its worker died). ``lost``: its
+    worker died (a process killed or crashed, a Ray actor gone) while it ran, so how the branch itself
+    would end is unknown; run again, it may end well (or kill its worker again: then it is its doing)."""
 
     ok: bool
     reason: str | None = None
     failed_tick: int | None = None
     ticks_done: int = 0
+    lost: bool = False
 
     def __str__(self) -> str:
         return "ok" if self.ok else f"failed: {self.reason}"

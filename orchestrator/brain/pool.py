@@ -140,7 +140,7 @@ class ProcessPool:
                     # back to the queue, for the worker that takes its place
                     running, *later = worker.handed
                     outcomes[running.index] = BranchOutcome(running.index, {}, None, BranchStatus(
-                        False, f"the worker process running branch {running.index} died ({worker.cause()})"))
+                        False, f"the worker process running branch {running.index} died ({worker.cause()})", lost=True))
                     queue.extendleft(reversed(later))
                     self._replace(worker)
                     continue

@@ -115,7 +115,7 @@ class RayPool:
                     first, *later = handed.pop(actor)
                     running = owner.pop(first)[1]
                     outcomes[running.index] = BranchOutcome(running.index, {}, None, BranchStatus(
-                        False, f"the Ray worker running branch {running.index} died ({_reason(exc)})"))
+                        False, f"the Ray worker running branch {running.index} died ({_reason(exc)})", lost=True))
                     for other in reversed(later):
                         queue.appendleft(owner.pop(other)[1])
                     actor = self._replace(actor)

@@ -303,12 +303,14 @@ class RolloutBackend:
         core = self._check_world(self.world)
         ports = _Ports(core)
         columns = self._plan(ports, tasks)
-        if self._scratch is None:
-            self._scratch = self.world.fork(self.world.name)
+        self.prepare()
+        longest: dict[bytes, int] = {}  # each distinct start: the most ticks a branch runs from it
+        for task in tasks:
+            longest[task.start] = max(task.ticks, longest.get(task.start, 0))
         bases: dict[bytes, _Base | None] = {}  # each distinct start, imported into the scratch fork
         for task in tasks:
             if task.start not in bases:
-                bases[task.start] = self._import(task, ports, columns)
+                bases[task.start] = self._import(task, longest[task.start], ports, columns)
         starts: dict[Any, _Start | None] = {}  # each distinct start with each distinct set of parameters
         pending: set[Future] = set()
         outcomes: dict[int, BranchOutcome] = {}
@@ -340,10 +342,15 @@ class RolloutBackend:
             rolled = future.result()
             outcomes[rolled.job.task.index] = self._finish(rolled)
 
-    def _import(self, task: BranchTask, ports: _Ports, columns: dict[str, _Column]) -> _Base | None:
-        """The scratch fork at the start of ``task``, checked (the core alone, no events in the branch's
-        ticks, no velocity input held, recorded sensors of a known stage); None when the fork refuses
-        the state (`run_branch` then fails the branch, as on every backend)."""
+    def prepare(self) -> None:
+        """Make the scratch fork (a copy of the world, read now: before a batch runs on another thread)."""
+        if self._scratch is None:
+            self._scratch = self.world.fork(self.world.name)
+
+    def _import(self, task: BranchTask, ticks: int, ports: _Ports, columns: dict[str, _Column]) -> _Base | None:
+        """The scratch fork at the start of ``task``, checked (the core alone, no events in the ``ticks``
+        the longest branch from it runs, no velocity input held, recorded sensors of a known stage); None
+        when the fork refuses the state (`run_branch` then fails the branch, as on every backend)."""
         scratch = self._scratch
         assert scratch is not None
         try:
@@ -351,7 +358,7 @@ class RolloutBackend:
         except DynabrainError:
             return None
         view = self._check_world(scratch).mj
-        self._check_events(scratch, scratch.tick_count, task.ticks)
+        self._check_events(scratch, scratch.tick_count, ticks)
         bus = {b: np.asarray(scratch.get(f"{ports.core}.{b}"), dtype=np.float64).reshape(-1) for b in ports.sizes}
         held = [f"{ports.core}.{b}" for b in HELD_BLOCKS if b in bus and not np.isnan(bus[b]).all()]
         if held:
