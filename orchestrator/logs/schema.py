@@ -15,8 +15,10 @@ Topics, one schema each (what the MCAP spec expects of a topic):
 
 - ``/bus``: the whole signal bus, one protobuf message per tick (`BusCodec`). Its schema is made from
   the bus layout: fields ``tick``, ``epoch``, ``time`` and one field per signal, named after it
-  (``core.aa.pos`` is ``core__aa__pos``; its JSON name and a comment give the signal's own name, unit
-  and shape), so Foxglove plots ``/bus.core__aa__pos[2]``. A block port whose rows all have names of
+  (``core.aa.pos`` is ``core__aa__pos``; its JSON name is the signal's own name), so Foxglove plots
+  ``/bus.core__aa__pos[2]``. The schema is a plain FileDescriptorSet that strict readers (the ``mcap``
+  CLI's ``cat --json``) decode: the units are in the channel's metadata (``units``: signal -> unit), not
+  in comments. A block port whose rows all have names of
   their own is written as those rows, so every bus value is written once. When modules arrive or
   leave, the new layout is a new schema, so it goes to a topic of its own: layout ``k`` (counted in
   the log, from 1) on ``/bus/layout<k>`` (`bus_topic`; the first layout stays on ``/bus``, and a
@@ -130,9 +132,11 @@ def varint(value: int) -> bytes:
 
 
 def field_name(signal: str) -> str:
-    """A protobuf field name for a signal: dots become ``__``, other odd characters ``_``."""
-    name = re.sub(r"\W", "_", signal.replace(".", "__"))
-    return name if name[:1].isalpha() else f"s_{name}"
+    """A protobuf field name for a signal: dots become ``__``, other characters that a protobuf identifier
+    cannot hold (anything but ASCII letters, digits and ``_``) ``_``; one that would not start with a letter
+    gets ``s_`` in front."""
+    name = re.sub(r"[^0-9A-Za-z_]", "_", signal.replace(".", "__"))
+    return name if name[:1].isascii() and name[:1].isalpha() else f"s_{name}"
 
 
 class FieldNumbers:
@@ -297,7 +301,10 @@ class BusCodec:
         return f"dynabrain.{self.kind}{self.key}.Bus"
 
     def descriptor(self) -> bytes:
-        """The schema as a serialized protobuf FileDescriptorSet."""
+        """The schema as a serialized protobuf FileDescriptorSet, built with protobuf's own descriptor
+        classes and nothing that strict readers refuse: no ``SourceCodeInfo`` (Go's protodesc, and so the
+        ``mcap`` CLI, rejects a location without a span: ``proto: invalid span: []``), so a field's unit
+        is in the channel's metadata (``units``, `metadata`), not in a comment."""
         fd = descriptor_pb2.FileDescriptorProto(name=f"dynabrain/{self.kind}{self.key}.proto",
                                                 package=f"dynabrain.{self.kind}{self.key}", syntax="proto3")
         msg = fd.message_type.add(name="Bus")
@@ -314,14 +321,18 @@ class BusCodec:
             label = fdp.LABEL_OPTIONAL if f.shape == () else fdp.LABEL_REPEATED
             msg.field.add(name=name, number=self.numbers[f.name], type=fdp.TYPE_DOUBLE, label=label,
                           json_name=f.name)
-            where = fd.source_code_info.location.add(path=[4, 0, 2, len(msg.field) - 1])
-            where.leading_comments = f" {f.name}: unit {f.unit}, shape {list(f.shape)}"
         return descriptor_pb2.FileDescriptorSet(file=[fd]).SerializeToString()
+
+    def units(self) -> dict[str, str]:
+        """Signal -> unit of every field (``""``: none), for the channel's metadata: the schema holds no
+        comments (see `descriptor`)."""
+        return {f.name: f.unit for f in self.fields}
 
     def metadata(self) -> dict[str, str]:
         """Channel metadata from which `from_metadata` makes the same codec again."""
         return {"layout": json.dumps([[s.name, s.offset, list(s.shape), s.unit] for s in self.slots]),
                 "bus_size": str(self.size), "fields": json.dumps(self.numbers), "layout_key": str(self.key),
+                "units": json.dumps(self.units()),
                 **({} if self.kind == "layout" else {"kind": self.kind})}
 
     @classmethod
