@@ -43,8 +43,10 @@ from . import protocol as p
 from .batching import BatchCall, BatchSettings, KeptState, Stored
 from .checks import ValueRefusedError, check_pose, check_set, trial_set
 
-DEFAULT_ALLOW_PYTHON = ("dynabrain.*",)
-"""Module classes a remote brain may add (``fnmatch`` patterns on ``package.module:Class``)."""
+DEFAULT_ALLOW_PYTHON: tuple[str, ...] = ()
+"""Module classes a remote brain may add besides dynabrain's own, the registered ones (entry points of
+``dynabrain.modules``) and the scenario folder's modules: package names (``mypkg``) or ``fnmatch``
+patterns on ``package.module:Class``; a ``__main__`` module never (`kernel.plugins.ClassPolicy`)."""
 STREAM_VIEW = 0
 SLICE_S = 0.05
 """Wall-clock seconds a long ``tick`` runs before it lets other calls in (`WorldService.between_slices`)."""
@@ -293,9 +295,10 @@ class WorldService:
             raise ValueRefusedError(str(exc)) from None
         try:
             return make_module(spec, base_dir=self.base_dir or ".", allow_python=self.allow_python)
-        except ModuleNotAllowedError as exc:
-            raise DynabrainError(f"module class {exc.python!r} is not allowed on this server (allowed: "
-                                 f"{', '.join(exc.allowed) or 'none'}; see `dynabrain serve --allow-python`)") from None
+        except ModuleNotAllowedError as exc:  # (refused before anything was imported)
+            raise DynabrainError(f"add_module {spec.name!r}: {exc}; not allowed on this server (allowed besides "
+                                 f"dynabrain's own and the registered: {', '.join(exc.allowed) or 'none'}; see "
+                                 "`dynabrain serve --allow-python`)") from None
 
     def do_remove_module(self, a: p.NameArgs) -> list[str]:
         self.world.remove_module(a.name)

@@ -62,7 +62,7 @@ events:
     text = "\n".join(found)
     assert len(found) == 8, text
     assert "has no class 'Nope'" in text
-    assert "no module named 'no_such_package'" in text
+    assert "'no_such_package.mod:Cls' is not allowed" in text and "--allow-python no_such_package" in text
     assert "no parameter 'kk' (did you mean 'k'?)" in text
     assert "not a whole multiple" in text
     assert "'s' is used twice" in text

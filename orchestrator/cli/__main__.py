@@ -1,5 +1,7 @@
-"""``python -m dynabrain.orchestrator.cli``: the ``dynabrain`` command."""
+"""``python -m dynabrain.orchestrator.cli``: the ``dynabrain`` command (only when run as a program:
+importing this module runs nothing)."""
 
 from .main import main
 
-main()
+if __name__ == "__main__":
+    main()

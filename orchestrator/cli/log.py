@@ -116,7 +116,14 @@ def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
                "--live", help="play the log to Foxglove over WebSocket (loopback), at --speed, once a client "
                               "subscribes; with --publish both at once")] = False,
            live_port: LivePortOpt = None,
-           events: Annotated[int, typer.Option(help="how many events to list")] = 40) -> None:
+           events: Annotated[int, typer.Option(help="how many events to list")] = 40,
+           allow_python: Annotated[list[str] | None, typer.Option(
+               "--allow-python", help="--verify: a package whose module classes the log may name, besides "
+                                      "dynabrain's own, the registered ones and the scenario folder's (repeatable)")
+           ] = None,
+           allow_version_mismatch: Annotated[bool, typer.Option(
+               "--allow-version-mismatch", help="--verify: verify a log written by another major or minor "
+                                                "version of dynabrain or MuJoCo")] = False) -> None:
     """Summarize a log (duration, channels, events); --verify re-simulates it and compares bit for bit;
     --publish plays it over Zenoh, --live to Foxglove."""
     from ..logs.read import read_index
@@ -142,7 +149,7 @@ def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
             if view is not None:
                 view.close()
         if verify:
-            _verify(log)
+            _verify(log, tuple(allow_python or ()), allow_version_mismatch)
 
 
 def _live_replay(log: Path, port: int | None, speed: float) -> Any:
@@ -182,10 +189,14 @@ def _publish(log: Path, speed: float, listen: list[str] | None, connect: list[st
         publish_recording(os.fspath(log), speed=speed)
 
 
-def _verify(log: Path) -> None:
+def _verify(log: Path, allow_python: tuple[str, ...] = (), allow_version_mismatch: bool = False) -> None:
     from ..logs.verify import verify
 
-    result = verify(log)
+    result = verify(log, allow_python=allow_python, allow_version_mismatch=allow_version_mismatch)
+    out.print(f"verify: {result.versions}", markup=False)
+    for first, last in result.gaps:
+        out.print(f"verify: gap: the recording lacks ticks {first}..{last} (lost chunks); stepped through, not "
+                  "compared", markup=False)
     rate = f"{result.ticks} ticks re-simulated, {result.rows} rows compared in {result.wall_s:.2f} s " \
            f"({result.ticks_per_s:,.0f} ticks/s)"
     if result.ok:

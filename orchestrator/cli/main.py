@@ -22,13 +22,28 @@ from rich.table import Table
 
 from ..kernel.errors import DynabrainError, ScenarioError
 from ..kernel.units import format_duration
+from ..scenario.model import Scenario, load_scenario
 from ..scenario.runner import RunResult, run_scenario
-from .common import console, err_console, fail_scenario, load_or_exit
+from .common import console, err_console, fail_scenario
 from .examples import resolve_scenario
 
 app = typer.Typer(no_args_is_help=True, help="dynabrain: a co-simulation orchestrator a robot brain embeds.")
 _quiet = False
 """``-q`` before the command: no progress bar either."""
+
+
+AllowPythonOpt = typer.Option(
+    None, "--allow-python", help="a package whose module classes the scenario may name, besides dynabrain's own, "
+                                 "the registered ones and the scenario folder's modules (repeatable)")
+
+
+def _load(path: Path, allow_python: list[str] | None) -> Scenario:
+    """The scenario at ``path`` with the packages the user allowed, or exit 2 with its problems."""
+    try:
+        return load_scenario(path, allow_python or ())
+    except ScenarioError as exc:
+        fail_scenario(exc)
+        raise  # not reached: fail_scenario exits
 
 
 def _version(value: bool) -> None:
@@ -76,13 +91,14 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
                                              "port); a port asked for and in use is an error"),
         ros2_schemas: bool = typer.Option(False, "--ros2-schemas", help="--log: also write /joint_states, /clock "
                                           "and /tf as ROS 2 messages (CDR, ros2msg schemas) for rosbag2 tools"),
-        quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar")) -> None:
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
+        allow_python: list[str] | None = AllowPythonOpt) -> None:
     """Run a scenario to its end and check its expectations."""
     scenario = resolve_scenario(scenario)
     if not scenario.exists() and scenario.parent == Path("."):
         err_console.print(f"no file {scenario} here, and no shipped scenario of that name (`dynabrain examples` "
                           "lists them)", markup=False)
-    sc = load_or_exit(scenario)
+    sc = _load(scenario, allow_python)
     if duration is not None:
         sc.duration_ns = _duration_option(duration)
     try:
@@ -161,9 +177,11 @@ def _duration_option(text: str) -> int:
 
 
 @app.command()
-def check(scenario: Path = typer.Argument(..., help="scenario YAML file")) -> None:
-    """Validate a scenario (every problem at once) and show what it builds."""
-    sc = load_or_exit(scenario)
+def check(scenario: Path = typer.Argument(..., help="scenario YAML file"),
+          allow_python: list[str] | None = AllowPythonOpt) -> None:
+    """Validate a scenario (every problem at once) and show what it builds; a module class outside
+    dynabrain's own, the registered ones and the scenario folder is refused unimported (--allow-python)."""
+    sc = _load(scenario, allow_python)
     try:
         world = sc.build()
     except ScenarioError as exc:

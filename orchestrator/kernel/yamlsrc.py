@@ -7,7 +7,10 @@ A YAML file is read within limits, every one a file:line problem rather than a h
 - `MAX_VALUES`: how many values the document holds once its aliases are expanded (nine nested
   anchors of nine items each would expand to 387 million: an "alias bomb");
 - the text is UTF-8 (a UTF-8 byte-order mark is allowed); a file in another encoding, or binary
-  data, is named with the line of the first byte at fault.
+  data, is named with the line of the first byte at fault;
+- only the core schema's tags (`CORE_TAGS`: strings, numbers, booleans, null, lists, mappings, and the
+  dates YAML reads unasked): ``!!python/name:...``, ``!!binary``, ``!!set`` or a custom ``!tag``, on a
+  value, a list or a mapping, is an error with its line, never ignored.
 
 The limits are checked on the parser's event stream before anything is built, so a refused file
 costs time in proportion to its size, never to its expansion.
@@ -31,6 +34,10 @@ MAX_DEPTH = 50
 """How deeply lists and mappings may nest."""
 MAX_VALUES = 200_000
 """How many values (scalars, lists, mappings) a document may hold, its aliases expanded."""
+
+_YAML = "tag:yaml.org,2002:"
+CORE_TAGS = frozenset(_YAML + t for t in ("str", "int", "float", "bool", "null", "seq", "map", "timestamp", "merge"))
+"""The tags a value may carry, written or implied (a plain ``2024-01-01`` is a timestamp); any other is refused."""
 
 _WIDE_BOMS = ((codecs.BOM_UTF32_LE, "UTF-32"), (codecs.BOM_UTF32_BE, "UTF-32"),
               (codecs.BOM_UTF16_LE, "UTF-16"), (codecs.BOM_UTF16_BE, "UTF-16"))
@@ -104,6 +111,12 @@ class YamlSource:
 
     def _build(self, node: yaml.Node, path: Path) -> Any:
         self.lines[path] = node.start_mark.line + 1
+        if node.tag not in CORE_TAGS:
+            tag = "!!" + node.tag.removeprefix(_YAML) if node.tag.startswith(_YAML) else node.tag
+            self.problems.append(Problem(f"the YAML tag {tag} is not allowed: only the core schema's tags (strings, "
+                                         "numbers, booleans, null, lists, mappings)", self.file,
+                                         node.start_mark.line + 1, self.field(path) or None))
+            return None
         if isinstance(node, yaml.MappingNode):
             out: dict[str, Any] = {}
             for key_node, value_node in node.value:

@@ -12,6 +12,14 @@ discarded ones included, is compared bit for bit with the row the replay produce
 and tick. The first difference is reported with its tick, signal and both values. What a brain
 imagined (``/imagined/...``) is not compared: it is no part of the run. A log with no ticks at all
 (nothing on ``/bus``) has nothing to verify and is refused (`LogError`; the CLI exits 2).
+
+A log is not trusted further than a scenario: its module classes and FMUs are made under the same rules
+(`kernel.plugins.ClassPolicy`, ``allow_python``), and a log written by another major or minor version
+of dynabrain or MuJoCo is refused, saying which, unless ``allow_version_mismatch`` (the recorded versions
+are stated either way: `VerifyResult.versions`). A recovered log whose middle chunks were lost has gaps
+in its ticks: the replay steps through a gap without comparing (it re-simulates from the scenario, so
+it needs no recorded state there), reports it (`VerifyResult.gaps`), and compares again from the first
+tick recorded after it.
 """
 
 from __future__ import annotations
@@ -20,7 +28,7 @@ import dataclasses
 import os
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,7 +39,7 @@ from ..kernel.errors import DynabrainError, ModuleError, ScenarioError
 from ..kernel.observers import WorldView
 from ..scenario.make import ModuleSpecError, make_module
 from ..scenario.model import load_scenario
-from .meta import RunInfo
+from .meta import RunInfo, versions
 from .read import BusRow, LogIndex, iter_bus, read_index
 from .scan import LogError
 from .schema import TOPIC_BUS, BusCodec
@@ -67,6 +75,10 @@ class VerifyResult:
     epochs: int
     wall_s: float
     divergence: Divergence | None = None
+    versions: str = ""
+    """The dynabrain and MuJoCo versions that wrote the log, and those that verified it."""
+    gaps: tuple[tuple[int, int], ...] = ()
+    """Ticks (first, last) the recording lacks (chunks lost and recovered around): stepped, not compared."""
 
     @property
     def ticks_per_s(self) -> float:
@@ -78,15 +90,22 @@ class _DivergedError(Exception):
         self.divergence = divergence
 
 
-def verify(path: str | os.PathLike[str]) -> VerifyResult:
+def verify(path: str | os.PathLike[str], *, allow_python: Sequence[str] = (),
+           allow_version_mismatch: bool = False) -> VerifyResult:
     """Re-simulate the run recorded in ``path`` and compare it tick by tick (see the module docstring).
-    Raises `LogError` / `ScenarioError` when there is nothing to verify against."""
+    ``allow_python``: packages whose module classes the log may name (`Scenario.allow_python`).
+    Raises `LogError` / `ScenarioError` when there is nothing to verify against, or a version mismatch."""
     path = os.fspath(path)
     index = read_index(path)
     info = index.info
     if info is None:
-        lib = index.header.library if index.header else "unknown"
-        raise LogError(f"{path} is not a dynabrain recording (written by {lib!r}); it has no scenario to verify")
+        lib = index.header.library if index.header else ""
+        if lib.startswith("dynabrain"):
+            raise LogError(f"{path} was written by {lib!r} but lacks its `dynabrain` metadata record (the scenario, "
+                           "seed and versions of the run: lost, or never written by a run killed early), so there "
+                           "is no scenario to verify against")
+        raise LogError(f"{path} is not a dynabrain recording (written by {lib or 'an unnamed library'!r}); it "
+                       "has no scenario to verify")
     if not info.scenario_text:
         raise LogError(f"{path} has no scenario: it records a world built in code, which --verify cannot rebuild")
     if info.start_tick != 0:
@@ -94,14 +113,41 @@ def verify(path: str | os.PathLike[str]) -> VerifyResult:
     if not index.keys.get(TOPIC_BUS):
         raise LogError(f"{path} holds no ticks (no {TOPIC_BUS} messages), so there is nothing to verify (a run "
                        "killed before its first chunk was written recovers to such a log)")
-    world = rebuild(info, path)
+    stated = check_versions(info, path, allow_version_mismatch)
+    world = rebuild(info, path, allow_python)
     try:
-        return _Replay(world, index, path, info.scenario_dir or ".").run()
+        result = _Replay(world, index, path, info.scenario_dir or ".", allow_python).run()
     finally:
         world.close()
+    return dataclasses.replace(result, versions=stated)
 
 
-def rebuild(info: RunInfo, log_path: str) -> Any:
+VERSIONED = ("dynabrain", "mujoco")
+"""The packages whose major and minor versions must be the recording's (`check_versions`)."""
+
+
+def check_versions(info: RunInfo, path: str, allow_mismatch: bool = False) -> str:
+    """A line stating the `VERSIONED` packages' versions, recorded and here; a `LogError` saying which
+    differs in its major or minor version, unless ``allow_mismatch``."""
+    here = versions()
+    parts, differ = [], []
+    for name in VERSIONED:
+        then, now = info.versions.get(name), here.get(name)
+        parts.append(f"{name} {then or 'unrecorded'}" + (f" (here {now})" if now != then else ""))
+        if then is not None and now is not None and _major_minor(then) != _major_minor(now):
+            differ.append(f"{name} {then} wrote it, {now} is installed")
+    stated = "recorded with " + ", ".join(parts)
+    if differ and not allow_mismatch:
+        raise LogError(f"{path}: {'; '.join(differ)}: another major or minor version may step differently, so a "
+                       "difference would not tell a bug (pass --allow-version-mismatch to verify it all the same)")
+    return stated + ("; verified despite the version mismatch" if differ else "")
+
+
+def _major_minor(version: str) -> tuple[str, ...]:
+    return tuple(version.split(".")[:2])
+
+
+def rebuild(info: RunInfo, log_path: str, allow_python: Sequence[str] = ()) -> Any:
     """The recorded scenario, loaded again and built with the recorded seed and history depth."""
     original = info.scenario_path or os.path.join(info.scenario_dir or ".", "scenario.yaml")
     label = f"{original} (as recorded in {log_path})"
@@ -110,7 +156,7 @@ def rebuild(info: RunInfo, log_path: str) -> Any:
         with open(copy, "w", encoding="utf-8") as fh:
             fh.write(info.scenario_text or "")
         try:
-            sc = load_scenario(copy)
+            sc = load_scenario(copy, allow_python)
         except ScenarioError as exc:
             raise ScenarioError([dataclasses.replace(p, file=label) for p in exc.problems]) from None
     sc.path = os.path.join(info.scenario_dir, os.path.basename(original)) if info.scenario_dir else original
@@ -121,8 +167,10 @@ def rebuild(info: RunInfo, log_path: str) -> Any:
 
 
 class _Replay:
-    def __init__(self, world: Any, index: LogIndex, path: str, base_dir: str):
+    def __init__(self, world: Any, index: LogIndex, path: str, base_dir: str, allow_python: Sequence[str] = ()):
         self.world, self.view, self.index, self.base_dir = world, WorldView(world), index, base_dir
+        self.allow_python = tuple(allow_python)
+        self.gaps: list[tuple[int, int]] = []
         self._rows: Iterator = iter_bus(path, index, produced=True)
         self._peeked: BusRow | None = None
         self.epoch = self.compared = self.stepped = 0
@@ -151,7 +199,7 @@ class _Replay:
         except _DivergedError as exc:
             divergence = exc.divergence
         return VerifyResult(divergence is None, self.compared, self.stepped, self.world.tick_count, self.epoch,
-                            time.perf_counter() - t0, divergence)
+                            time.perf_counter() - t0, divergence, gaps=tuple(self.gaps))
 
     # -- the recorded rows ----------------------------------------------------------------------------
     def _peek(self) -> BusRow | None:
@@ -185,7 +233,14 @@ class _Replay:
         except ModuleError as exc:
             self._fail(f"the replay failed where the run did not: {exc}")
         self.stepped += 1
-        self._compare(self._next())
+        row, tick = self._peek(), self.world.tick_count
+        if row is not None and row.epoch == self.epoch and row.tick > tick:  # the recording lacks this tick
+            if self.gaps and self.gaps[-1][1] == tick - 1:
+                self.gaps[-1] = (self.gaps[-1][0], tick)
+            else:
+                self.gaps.append((tick, tick))
+        else:
+            self._compare(self._next())
         self._remember()
 
     def _remember(self) -> None:
@@ -233,7 +288,7 @@ class _Replay:
             self._rollback(detail)
         else:
             try:
-                apply_edit(self.world, kind, detail, self.base_dir)
+                apply_edit(self.world, kind, detail, self.base_dir, self.allow_python)
             except LogError:
                 raise
             except DynabrainError as exc:
@@ -285,13 +340,16 @@ def _checked(event: dict, path: str) -> dict:
     return event
 
 
-def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".") -> None:
+def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".", allow_python: Sequence[str] = ()) -> None:
     """Make a recorded edit again (an event of kind ``kind`` with detail ``d``); a module's FMU path is
-    relative to ``base_dir`` (the recorded scenario's folder)."""
+    relative to ``base_dir`` (the recorded scenario's folder), its class allowed as a scenario's is."""
     if kind == "module_added":
         spec = d["spec"]
+        if not isinstance(spec, dict):
+            raise LogError(f"the recording adds a module at tick {world.tick_count} whose spec is damaged: "
+                           f"{spec!r:.80}")
         try:
-            module = make_module(spec, base_dir=base_dir)
+            module = make_module(spec, base_dir=base_dir, allow_python=allow_python)
         except ModuleSpecError as exc:  # nothing to compare with: the recording cannot be replayed here
             raise LogError(f"the recording adds module {spec.get('name')!r} at tick {world.tick_count}, which "
                            f"cannot be made here: {exc}") from None

@@ -12,13 +12,12 @@ A spec is the scenario's module syntax, as a mapping (or any object with those a
 
 from __future__ import annotations
 
-import fnmatch
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..kernel.errors import DynabrainError
 from ..kernel.module import Module
-from ..kernel.plugins import resolve_class
+from ..kernel.plugins import ClassNotAllowedError, ClassPolicy, resolve_module_class
 from ..kernel.units import parse_duration_ns
 
 SPEC_KEYS = ("name", "python", "fmu", "isolate", "call_timeout", "start_time", "params", "targets")
@@ -35,20 +34,20 @@ class ModuleSpecError(DynabrainError):
 
 
 class ModuleNotAllowedError(ModuleSpecError):
-    """A ``python:`` class path that the caller's ``allow_python`` patterns do not match."""
+    """A ``python:`` class path that `plugins.ClassPolicy` refuses (nothing was imported)."""
 
-    def __init__(self, python: str, allowed: Sequence[str]):
-        super().__init__(f"module class {python!r} is not allowed (allowed: {', '.join(allowed) or 'none'})",
-                         "python")
+    def __init__(self, python: str, allowed: Sequence[str], message: str | None = None):
+        super().__init__(message or f"module class {python!r} is not allowed", "python")
         self.python, self.allowed = python, tuple(allowed)
 
 
-def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".",
-                allow_python: Sequence[str] | None = None) -> Module:
+def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".", allow_python: Sequence[str] = ()) -> Module:
     """The module ``spec`` describes, constructed (not yet added to a world).
 
-    ``base_dir``: the folder an FMU path is relative to (the scenario's). ``allow_python``: glob
-    patterns a ``python:`` class path must match (a server's policy); None allows any importable class.
+    ``base_dir``: the folder an FMU path is relative to (the scenario's); a ``python:`` class in a
+    module of that folder is allowed (the scenario's own). ``allow_python``: the packages (or
+    ``fnmatch`` patterns on the class path) the user allowed besides dynabrain's own and the
+    registered classes (`plugins.ClassPolicy`); any other class is refused before it is imported.
     Raises `ModuleSpecError` naming the field at fault.
     """
     get = spec.get if isinstance(spec, Mapping) else (lambda key, default=None: getattr(spec, key, default))
@@ -69,10 +68,10 @@ def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".",
                        ("start_time", start_time is not None)):
         if given:
             raise ModuleSpecError(f"{key} applies to an FMU module (`fmu:`), not to a Python class", key)
-    if allow_python is not None and not any(fnmatch.fnmatchcase(python, pat) for pat in allow_python):
-        raise ModuleNotAllowedError(python, allow_python)
     try:
-        cls = resolve_class(python)
+        cls = resolve_module_class(python, ClassPolicy.of(allow_python, [base_dir]))
+    except ClassNotAllowedError as exc:
+        raise ModuleNotAllowedError(python, allow_python, str(exc)) from None
     except DynabrainError as exc:
         raise ModuleSpecError(str(exc), "python") from None
     try:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import functools
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
@@ -18,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from ..kernel.errors import DynabrainError, Problem, ScenarioError, UnitError
 from ..kernel.history import format_bytes, projected_state_bytes
 from ..kernel.module import Module
-from ..kernel.plugins import resolve_class, resolve_core
+from ..kernel.plugins import ClassPolicy, resolve_core, resolve_module_class
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import format_duration, parse_duration_ns
 from ..kernel.world import World, as_connection
@@ -133,6 +134,9 @@ class Scenario:
     """Problems found while reading the file (its shape); `build` reports them with its own."""
     invalid: frozenset[Path] = frozenset()
     """Items (``("modules", 2)``) whose shape is wrong: `build` leaves them out."""
+    allow_python: tuple[str, ...] = ()
+    """Packages whose module classes the user allowed (``--allow-python``) besides dynabrain's own, the
+    registered ones and the scenario folder's own modules (`plugins.ClassPolicy`)."""
 
     @property
     def dir(self) -> str:
@@ -147,8 +151,9 @@ class Scenario:
         if problems:
             world.close()
             raise ScenarioError(problems)
-        world.module_factory = functools.partial(make_module, base_dir=self.dir)
-        world.rebuild = functools.partial(load_world, os.path.abspath(self.path), **overrides)
+        world.module_factory = functools.partial(make_module, base_dir=self.dir, allow_python=self.allow_python)
+        world.rebuild = functools.partial(load_world, os.path.abspath(self.path), allow_python=self.allow_python,
+                                          **overrides)
         return world
 
     def check(self) -> list[Problem]:
@@ -160,10 +165,11 @@ class Scenario:
         return []
 
 
-def load_scenario(path: str | os.PathLike[str]) -> Scenario:
+def load_scenario(path: str | os.PathLike[str], allow_python: Sequence[str] = ()) -> Scenario:
     """Read and validate the shape of a scenario file (the rest is checked by `Scenario.build`). A
     file whose shape is wrong is built all the same, leaving out what is wrong, so that the
-    `ScenarioError` lists every problem of the file, not only the first kind found."""
+    `ScenarioError` lists every problem of the file, not only the first kind found. ``allow_python``:
+    see `Scenario.allow_python`."""
     path = os.fspath(path)
     source = read_yaml(path, "the scenario")
     if source.problems and source.data is None:
@@ -172,17 +178,19 @@ def load_scenario(path: str | os.PathLike[str]) -> Scenario:
         shape = Problem("a scenario is a mapping (name:, world:, scene:, ...)", path, 1)
         raise ScenarioError([*source.problems, shape])
     model, problems, invalid = _validate(source)
-    scenario = Scenario(path, source, model, problems=[*source.problems, *problems], invalid=frozenset(invalid))
+    scenario = Scenario(path, source, model, problems=[*source.problems, *problems], invalid=frozenset(invalid),
+                        allow_python=tuple(allow_python))
     scenario.duration_ns = parse_duration_ns(model.world.duration)
     if scenario.problems:
         scenario.build().close()  # raises, with the problems of the shape and those the build finds
     return scenario
 
 
-def load_world(path: str | os.PathLike[str], **overrides: Any) -> World:
+def load_world(path: str | os.PathLike[str], *, allow_python: Sequence[str] = (), **overrides: Any) -> World:
     """The World a scenario file describes, ready at t=0 (``overrides`` replace ``world:`` keys, e.g.
-    ``history=100``); a `ScenarioError` lists every problem at once."""
-    return load_scenario(path).build(**overrides)
+    ``history=100``; ``allow_python``: see `Scenario.allow_python`); a `ScenarioError` lists every
+    problem at once."""
+    return load_scenario(path, allow_python).build(**overrides)
 
 
 def _in_order(problems: list[Problem]) -> list[Problem]:
@@ -436,7 +444,8 @@ class _Builder:
         if start is not None and cfg.fmu is not None and cfg.start_time is None:
             update["start_time"] = start  # the world's start time, for an FMU that gives none of its own
         try:
-            module = make_module(cfg.model_copy(update=update) if update else cfg, base_dir=self.sc.dir)
+            module = make_module(cfg.model_copy(update=update) if update else cfg, base_dir=self.sc.dir,
+                                 allow_python=self.sc.allow_python)
         except ModuleSpecError as exc:
             self.report(path if exc.field is None else (*path, exc.field), str(exc))
             return None
@@ -452,8 +461,8 @@ class _Builder:
         class declares its parameters only once made (an FMU) or cannot be found (`make_module` says why)."""
         if cfg.python is None or cfg.fmu is not None:
             return None
-        try:
-            cls = resolve_class(cfg.python)
+        try:  # (a class the policy refuses is not imported: make_module says why)
+            cls = resolve_module_class(cfg.python, ClassPolicy.of(self.sc.allow_python, [self.sc.dir]))
             specs = cls.param_specs() if isinstance(cls, type) and issubclass(cls, Module) else None
         except Exception:  # make_module reports a class it cannot find or use
             return None
