@@ -31,7 +31,10 @@ class RunOutputs:
         self.logger, self.live, self.console = logger, live, console or err
 
     def finish(self, result: Any) -> None:
-        """Record the expectation results, close the log (errors surface here, not at world.close)."""
+        """Record the expectation results, close the log (errors surface here, not at world.close); send the
+        results to the live view (a client that connects later gets them too)."""
+        if self.live is not None:
+            self.live.log_result(result)
         if self.logger is not None:
             self.logger.log_result(result)
             self.logger.close()
@@ -60,7 +63,7 @@ def attach_run_outputs(world: Any, scenario: Any, *, log: Path | None, live: boo
         path = cfg.mcap if os.path.isabs(cfg.mcap) else os.path.join(scenario.dir, cfg.mcap)
     view = None
     if live:  # first: a port in use stops the run before anything is recorded
-        view = live_options(live_port, live_rate_hz, world.dt_ns).start(world)
+        view = live_options(live_port, live_rate_hz, world.dt_ns).start(world, scenario)
         console.print(f"live view: {view.url} (Foxglove: Open connection > Foxglove WebSocket), "
                       f"{live_rate(view.every, world.dt_ns)}", markup=False)
     logger = None

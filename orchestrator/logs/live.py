@@ -22,20 +22,29 @@ a new layout; ``max_rate_hz`` caps that further by wall-clock time (0: no cap). 
 paces the run at real time (unless ``--no-realtime``) and takes ``--live-rate`` in Hz of simulated
 time. Every event is sent.
 
-Late clients. The view keeps the latest message of each channel (state, poses, scene) and the last
-``keep_events`` events; a client that subscribes to a channel gets them at once (sent to that client
-only), so a client that connects after the scene was drawn, or after the run is over, still sees it.
-The scene is sent when the view starts, after each `make` and rollback, and to each new subscriber.
+The run. When the view starts it sends a ``run_start`` event (the world, the scenario, the step, the
+seed, the tick and wall-clock time it starts at, the log time of tick 0); `LiveView.log_result` sends the
+run's expectation results and its ``run_end`` (`dynabrain run --live` calls it), as a log holds them.
+
+Late clients. The view keeps the latest message of each channel (state, poses, scene), the last
+``keep_events`` events, and every event of the run's start, results and end (`schema.RUN_KINDS`), however
+many events came between; a client that subscribes to a channel gets them at once (sent to that client
+only, the events in the order they were sent), so a client that connects after the scene was drawn, or
+after the run is over, still sees it, and how it went. A played log (`logs.replay.LogView`) keeps its
+recorded results the same way. The scene is sent when the view starts, after each `make` and rollback, and
+to each new subscriber.
 """
 
 from __future__ import annotations
 
+import datetime
+import json
 import logging
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import foxglove
 import numpy as np
@@ -43,11 +52,13 @@ from foxglove.websocket import ServerListener
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf.message import DecodeError
 
 from ..kernel.errors import DynabrainError
 from ..kernel.observers import Observer, WorldEvent, WorldView
 from .scene import SceneDrawing
 from .schema import (
+    RUN_KINDS,
     TOPIC_EVENTS,
     TOPIC_SCENE,
     TOPIC_TF,
@@ -60,6 +71,7 @@ from .schema import (
     foxglove_descriptor,
     log_message,
     pose_columns,
+    result_events,
 )
 
 _log = logging.getLogger("dynabrain.mcap")
@@ -84,9 +96,11 @@ class LiveOptions:
     every: int = 1
     host: str = "127.0.0.1"
 
-    def start(self, world: Any) -> LiveView:
-        """A `LiveView` of ``world``, serving (a port in use raises `DynabrainError`; the world is untouched)."""
-        return LiveView(host=self.host, port=self.port, every=self.every, port_option=self.port_option).attach(world)
+    def start(self, world: Any, scenario: Any = None) -> LiveView:
+        """A `LiveView` of ``world`` (built from ``scenario``, when there is one), serving (a port in use raises
+        `DynabrainError`; the world is untouched)."""
+        return LiveView(host=self.host, port=self.port, every=self.every,
+                        port_option=self.port_option).attach(world, scenario)
 
 
 def check_host(host: str) -> str:
@@ -95,10 +109,19 @@ def check_host(host: str) -> str:
     return host
 
 
+class _Sent(NamedTuple):
+    """An event sent: ``n`` counts the events sent, so a late client gets the kept ones in order."""
+
+    n: int
+    data: bytes
+    t_ns: int
+
+
 class FoxgloveServer:
     """foxglove-sdk's WebSocket server with the channels of one view, which keeps the latest message of each
-    channel (the recent ones of the events channel) and sends them to a client that subscribes late. Used
-    by `LiveView` (a world) and `logs.replay.LogView` (a recorded run)."""
+    channel (of the events channel: the recent ones, and those of the run's start, results and end) and
+    sends them to a client that subscribes late. Used by `LiveView` (a world) and `logs.replay.LogView` (a
+    recorded run)."""
 
     def __init__(self, name: str = "dynabrain", keep_events: int = KEEP_EVENTS):
         self.name = name
@@ -110,7 +133,10 @@ class FoxgloveServer:
         """Set once a client has subscribed to a channel."""
         self._lock = threading.Lock()  # the latest messages, and sending them
         self._latest: dict[int, tuple[bytes, int]] = {}  # channel id -> its latest message and log time
-        self._recent: deque[tuple[bytes, int]] = deque(maxlen=keep_events)
+        self._recent: deque[_Sent] = deque(maxlen=keep_events)
+        self._run: list[_Sent] = []  # the events of the run's start, results and end: all of them
+        self._sent_events = 0
+        self._events_json = False  # a played log's events may be JSON (``dynabrain.Event``), not foxglove.Log
         self._channels: dict[int, Any] = {}
 
     def channel(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
@@ -120,7 +146,7 @@ class FoxgloveServer:
                               metadata=metadata)
         self._channels[ch.id()] = ch
         if events:
-            self.events = ch
+            self.events, self._events_json = ch, message_encoding == "json"
         return ch
 
     def proto_channel(self, topic: str, message_class: type, events: bool = False) -> Any:
@@ -134,13 +160,26 @@ class FoxgloveServer:
             self._channels.pop(channel.id(), None)
         channel.close()
 
-    def send(self, channel: Any, data: bytes, t_ns: int) -> None:
+    def send(self, channel: Any, data: bytes, t_ns: int, kind: str | None = None) -> None:
+        """Send a message to every subscriber and keep it for late ones. ``kind``: an event's kind (read
+        from the message when not given), so that the run's start, results and end are kept."""
         with self._lock:
             if channel is self.events:
-                self._recent.append((data, t_ns))
+                self._sent_events += 1
+                sent = _Sent(self._sent_events, data, t_ns)
+                self._recent.append(sent)
+                if (kind or self._event_kind(data)) in RUN_KINDS:
+                    self._run.append(sent)
             else:
                 self._latest[channel.id()] = (data, t_ns)
             channel.log(data, log_time=t_ns)
+
+    def _event_kind(self, data: bytes) -> str | None:
+        """The kind of an event message: a foxglove.Log's name (the JSON's ``kind`` in older logs)."""
+        try:
+            return json.loads(data).get("kind") if self._events_json else Log.FromString(data).name
+        except (ValueError, AttributeError, DecodeError):
+            return None
 
     def start(self, host: str, port: int, port_option: str | None = None) -> Any:
         """Start serving on ``host:port`` (see `LiveOptions` for a port in use)."""
@@ -171,9 +210,9 @@ class FoxgloveServer:
             channel = self._channels.get(channel_id)
             if channel is None:
                 return
-            if channel is self.events:
-                for data, t_ns in self._recent:
-                    channel.log(data, log_time=t_ns, sink_id=client_id)
+            if channel is self.events:  # the run's events and the recent ones, once each, in order
+                for sent in sorted({s.n: s for s in (*self._run, *self._recent)}.values()):
+                    channel.log(sent.data, log_time=sent.t_ns, sink_id=client_id)
                 return
             latest = self._latest.get(channel_id)
             if latest is not None:
@@ -218,6 +257,7 @@ class LiveView(Observer):
         self._tf: Any = None
         self._scene_ch: Any = None
         self._events: Any = None
+        self._world: Any = None
 
     @property
     def server(self) -> Any:
@@ -232,14 +272,17 @@ class LiveView(Observer):
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
-    def attach(self, world: Any) -> LiveView:
-        """Start serving ``world``; a port in use raises `DynabrainError` before the view observes it."""
+    def attach(self, world: Any, scenario: Any = None) -> LiveView:
+        """Start serving ``world`` (built from ``scenario``, when there is one: its ``run_start`` names it); a
+        port in use raises `DynabrainError` before the view observes it."""
         with world.lock():
             fox = self._fox
-            self._dt = world.dt_ns
+            self._world, self._dt = world, world.dt_ns
             view = WorldView(world)
-            self.origin_ns = time.time_ns() - view.tick * self._dt
+            wall_ns = time.time_ns()
+            self.origin_ns = wall_ns - view.tick * self._dt
             self._events = fox.proto_channel(TOPIC_EVENTS, Log, events=True)
+            self._send_event("run_start", view.tick, self._start_detail(world, scenario, wall_ns), "log")
             if view.core is not None:
                 self._poses = PoseCodec(view.core.bodies())
                 self._scene = SceneDrawing(view.core)
@@ -277,6 +320,26 @@ class LiveView(Observer):
 
     def on_close(self, view: WorldView) -> None:
         self.close()
+
+    def log_result(self, result: Any) -> None:
+        """Send a run's expectation results and its end (a `RunResult`; `dynabrain run --live` calls this), the
+        events a log holds for them; a client that connects later still gets them."""
+        if self.server is None:
+            raise DynabrainError("the live view is not serving (attach it to a world first, and before it closes)")
+        with self._world.lock():
+            for kind, detail in result_events(result):
+                self._send_event(kind, int(result.ticks), detail, "log")
+
+    def _start_detail(self, world: Any, scenario: Any, wall_ns: int) -> dict:
+        """What ``run_start`` says: the keys of a log's ``dynabrain`` metadata that a viewer needs (`logs.meta`),
+        as plain values."""
+        start = datetime.datetime.fromtimestamp(wall_ns / 1e9, datetime.UTC).isoformat(timespec="milliseconds")
+        detail = {"world": world.name, "dt_ns": self._dt, "seed": world.seed, "start_tick": world.tick_count,
+                  "start_time": start, "time_origin_ns": self.origin_ns}
+        if scenario is not None:
+            detail.update(scenario_name=scenario.model.name, scenario_path=str(scenario.path),
+                          duration_ns=scenario.duration_ns)
+        return detail
 
     def close(self) -> None:
         self._fox.close()
@@ -326,7 +389,7 @@ class LiveView(Observer):
                 "source": source, "detail": detail}
         t_ns = self.origin_ns + tick * self._dt
         self._fox.send(self._events, log_message(t_ns, event_level(kind, detail), event_bytes(body).decode(), kind),
-                       t_ns)
+                       t_ns, kind)
 
 
 class _Latest(ServerListener):

@@ -82,6 +82,7 @@ from .schema import (
     foxglove_descriptor,
     imagined_frame,
     pose_columns,
+    result_events,
 )
 from .sink import NOTHING_WRITTEN, ProcessSink, ThreadSink
 from .write import COMPRESSIONS
@@ -324,14 +325,8 @@ class McapLogger(Observer):
         if self._lock is None or self.closed:
             raise DynabrainError(f"the log {self.path} is not recording (attach it to a world first)")
         with self._lock:
-            tick = int(result.ticks)
-            for exp in result.expectations:  # at the run's end, when they are known (their ticks are in them)
-                detail = {"name": exp.label, "that": exp.that, "passed": bool(exp.passed), "detail": exp.detail,
-                          "from_tick": exp.start, "to_tick": exp.end}
-                self._event("expect", tick, detail, "log")
-            self._event("run_end", tick, {"ticks": tick, "sim_time": result.sim_time, "wall_time": result.wall_time,
-                                          "error": result.error, "ok": result.ok,
-                                          "ended": getattr(result, "ended", None)}, "log")
+            for kind, detail in result_events(result):
+                self._event(kind, int(result.ticks), detail, "log")
 
     def close(self) -> None:
         """Write what is waiting, the summary and the footer; rewrite the file if a rollback reached

@@ -66,6 +66,7 @@ import json
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from google.protobuf import descriptor_pb2
@@ -103,6 +104,23 @@ def event_level(kind: str, detail: dict) -> int:
     if kind == "rollback" or (kind == "expect" and not detail.get("passed", True)):
         return LEVELS["warning"]
     return LEVELS["debug"] if kind == "layout" else LEVELS["info"]
+
+
+RUN_KINDS = ("run_start", "expect", "run_end")
+"""The events that say how a run went: its start (a live view's), its expectation results, its end. A live
+view keeps them for a client that connects late, however many events came between (`logs.live`)."""
+
+
+def result_events(result: Any) -> list[tuple[str, dict]]:
+    """The events of a run's result (a `RunResult`): one ``expect`` per expectation, then ``run_end``, as
+    (kind, detail); a log (`McapLogger.log_result`) and a live view (`LiveView.log_result`) send the same."""
+    out: list[tuple[str, dict]] = []
+    for exp in result.expectations:  # at the run's end, when they are known (their ticks are in them)
+        out.append(("expect", {"name": exp.label, "that": exp.that, "passed": bool(exp.passed), "detail": exp.detail,
+                               "from_tick": exp.start, "to_tick": exp.end}))
+    out.append(("run_end", {"ticks": int(result.ticks), "sim_time": result.sim_time, "wall_time": result.wall_time,
+                            "error": result.error, "ok": result.ok, "ended": getattr(result, "ended", None)}))
+    return out
 
 
 def log_message(time_ns: int, level: int, text: str, name: str) -> bytes:
