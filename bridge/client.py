@@ -46,6 +46,8 @@ from .errors import (
     BridgeError,
     CallTimeoutError,
     NoWorldError,
+    RobotLostError,
+    RobotStoppedError,
     TickStoppedError,
     WorldRefusedError,
 )
@@ -508,13 +510,36 @@ class BrainClient:
                                        "targets": _targets(targets), "route": route, "sent_ns": time.time_ns()}))
 
     def robot_enable(self, robot: str) -> dict[str, Any]:
+        """Enable the robot: it then takes moves and programs; unless one reaches it within the enable
+        window (``enable_window_ms`` of the reply: the link's deadline) it safe-stops."""
         return self.call("robot_enable", robot=robot)
 
     def robot_stop(self, robot: str) -> dict[str, Any]:
         return self.call("robot_stop", robot=robot)
 
     def robot_status(self, robot: str) -> dict[str, Any]:
+        """The link's state: ``alive`` (``lost_tick``), ``mode`` (``mode_tick``, ``reason``), ``counts``,
+        ``program`` (the last one the servo began, and the robot's word on it), ``last_state`` (measured)."""
         return self.call("robot_status", robot=robot)
+
+    def robot_wait(self, robot: str, timeout: float = 60.0, poll_s: float = 0.02) -> dict[str, Any]:
+        """Wait until the robot has played to its end the last program the rig's servo began (a brain's
+        ``set("<servo>.sequence", [...])`` reaches the simulation and the robot), and return `robot_status`:
+        ``last_state`` says where the robot ended. `RobotLostError` when the robot goes away meanwhile (naming
+        the world's tick when the link lost it); `RobotStoppedError` when the program was not sent, or the
+        robot ignored, refused or stopped it; `CallTimeoutError` after ``timeout`` s (a looping program never
+        ends)."""
+        end = time.monotonic() + timeout
+        while True:
+            status = self.robot_status(robot)
+            _robot_check(robot, status)
+            played = (status.get("program") or {}).get("robot")
+            if played is not None and played.get("state") == "done":
+                return status
+            if time.monotonic() > end:
+                raise CallTimeoutError(f"robot {robot!r}: its program is not done after {timeout:g} s (the robot's "
+                                       f"word: {played})")
+            time.sleep(poll_s)
 
     # -- closing --------------------------------------------------------------------------------------------
     def close(self) -> None:
@@ -575,6 +600,32 @@ def _has_infinity(value: Any) -> bool:
     if isinstance(value, dict):
         return any(_has_infinity(v) for v in value.values())
     return False
+
+
+def _robot_check(robot: str, status: dict[str, Any]) -> None:
+    """Raise when the robot's status says its program will not be played to its end."""
+    if not status.get("alive"):
+        tick = status.get("lost_tick")
+        raise RobotLostError(robot, tick, f"robot {robot!r}: link lost at tick {tick} (its liveliness token went "
+                                          "away); the program may not have been carried out")
+    program = status.get("program")
+    if program is None:
+        raise RobotStoppedError(robot, None, "no program", f"robot {robot!r}: no program was sent to it (set its "
+                                "servo's sequence first)")
+    if not program.get("forwarded"):
+        raise RobotStoppedError(robot, program.get("tick"), str(program.get("reason")),
+                                f"robot {robot!r}: the program of tick {program.get('tick')} was "
+                                f"{'ignored' if program.get('ignored') else 'not sent'}: {program.get('reason')}")
+    played = program.get("robot") or {}
+    if played.get("state") in ("ignored", "refused", "stopped", "replaced"):
+        tick = status.get("mode_tick") if played["state"] == "stopped" else program.get("tick")
+        raise RobotStoppedError(robot, tick, str(played.get("reason")),
+                                f"robot {robot!r}: {played['state']} the program of tick {program.get('tick')} "
+                                f"at tick {tick}: {played.get('reason')}")
+    tick = status.get("mode_tick")
+    if status.get("mode") == "safe_stop" and played.get("state") != "done" and (tick or 0) >= program["tick"]:
+        raise RobotStoppedError(robot, tick, str(status.get("reason")),
+                                f"robot {robot!r}: safe-stopped at tick {tick}: {status.get('reason')}")
 
 
 def _targets(targets: Sequence[float] | dict[str, float]) -> list[float] | dict[str, float]:

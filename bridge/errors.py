@@ -83,3 +83,22 @@ ERRORS: dict[str, type[WorldRefusedError]] = {
     "bad_request": BadRequestError, "unknown_call": BadRequestError, "busy": WorldBusyError,
     "module_error": ModuleFailedError, "restarted": WorldRestartedError, "stopped": TickStoppedError,
 }
+
+
+class RobotLostError(BridgeError):
+    """A robot rig's robot went away (its liveliness token is gone) while a brain waited on it; ``tick`` is
+    the world's tick when the link lost it."""
+
+    def __init__(self, robot: str, tick: int | None, message: str):
+        self.robot, self.tick = robot, tick
+        super().__init__(message)
+
+
+class RobotStoppedError(BridgeError):
+    """A robot did not carry out what a brain waited for: its program was ignored, refused or not sent, or
+    the robot safe-stopped while playing it; ``tick`` is the world's tick when that was seen, ``reason`` the
+    robot's (or the link's) word."""
+
+    def __init__(self, robot: str, tick: int | None, reason: str, message: str):
+        self.robot, self.tick, self.reason = robot, tick, reason
+        super().__init__(message)

@@ -3,10 +3,18 @@
 It runs its own simulation of the robot (a World from a scenario, stepped in real time), publishes the
 measured joint state with noise and latency, and takes commands the way a robot controller should:
 
-- it starts *disabled* (holding its pose) and follows move commands only once *enabled*;
+- it starts *disabled* (holding its pose) and follows move commands and plays motion programs only once
+  *enabled* (a program on its own clock, `robot_player`); what it ignores or refuses it counts and says
+  on ``status``;
 - it refuses a command older than the command's deadline (the brain's stamp against its clock);
-- it stops by itself (*safe stop*: hold where it stands) when no fresh move arrives within the deadline,
-  when the world's liveliness token goes away, or on a stop command; an enable is needed to go on.
+- it stops by itself (*safe stop*: hold where it stands) when no move or program arrives within the
+  enable window after an enable, when streamed moves stop coming for their deadline, when the world's
+  liveliness token goes away, or on a stop command; an enable is needed to go on. A program is a whole
+  command: while it plays, and after it (holding its last pose), no stream of moves is expected.
+
+A rig on a servo's ``q_ref`` (the robot modules' `Servo`, whose program the moves add to) holds its
+pose by keeping its inputs as they are and freezing its program; a rig on a ``target`` (`PDServo`)
+holds the measured position.
 
 ``dynabrain robot-emulator bridge/arm.yaml --world arm --connect tcp/127.0.0.1:7447``
 Noise comes from its own seeded generator.
@@ -32,6 +40,8 @@ from dynabrain.orchestrator.kernel.world import World
 from . import frames
 from . import protocol as p
 from .calls import find_rig
+from .robot_player import ProgramPlayer
+from .robot_program import OP_PROGRAM, Program, read_program
 from .zenoh_io import FRAME, JSON, Settings, open_session, payload_bytes
 
 _log = logging.getLogger("dynabrain.robot")
@@ -73,18 +83,24 @@ class RobotEmulator:
         self._rng = np.random.default_rng(options.seed)
         self._source = int.from_bytes(np.random.default_rng(options.seed + 1).bytes(6), "little")
         self.mode, self.reason = frames.DISABLED, "starting"
-        self.counts = {"moves": 0, "stale": 0, "ignored": 0, "bad": 0, "states": 0}
+        self._status_ns = time.time_ns()  # when `mode` and `reason` last changed (the status's stamp)
+        self.counts = {"moves": 0, "programs": 0, "stale": 0, "ignored": 0, "bad": 0, "states": 0}
         self._commands: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=1024)
         self._outbox: collections.deque[tuple[int, bytes]] = collections.deque()
         self._world_present = False
         self._world_lost = False
         self._deadline_ns = 0
         self._last_cmd = 0
+        self._watch: str | None = None
+        """What the watchdog waits for: ``enable`` (a first move or program within the enable window),
+        ``move`` (fresh moves within their deadline), or nothing (disabled, stopped, or a program)."""
+        self._offsets = self.rig.port == "q_ref"
         self._seq = 0
         self.session: zenoh.Session | None = None
         for name, value in options.sets.items():
             world.set(name, value)
-        self.target = self._measure()[0]
+        self.player = ProgramPlayer(world, self.rig)
+        self.target = np.array(world.get(self.rig.signal), dtype=np.float64) if self._offsets else self._measure()[0]
 
     # -- Zenoh -----------------------------------------------------------------------------------------------
     def open(self) -> list[str]:
@@ -116,7 +132,8 @@ class RobotEmulator:
 
     def describe(self) -> dict[str, Any]:
         return {"robot": self.opts.robot, "joints": list(self.joints), "rate_hz": self.opts.rate_hz,
-                "mode": frames.MODES[self.mode], "reason": self.reason, "counts": dict(self.counts)}
+                "mode": frames.MODES[self.mode], "reason": self.reason, "stamp_ns": self._status_ns,
+                "counts": dict(self.counts), "program": self.player.word}
 
     # -- the control loop -----------------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -129,6 +146,7 @@ class RobotEmulator:
             now = time.monotonic_ns()
             self._take_commands(now, time.time_ns())
             self._watchdogs(now)
+            self._play()
             w.set(self.rig.signal, self.target)
             due = min(tick0 + (now - t0) // w.dt_ns - w.tick_count, 50)
             if due > 0:
@@ -165,54 +183,102 @@ class RobotEmulator:
             _, payload = self._commands.popleft()
             try:
                 frame = frames.unpack(payload, frames.ROBOT_CMD, finite=True)
-                frames.check_robot_cmd(frame, len(self.joints))
+                if frame.flags == OP_PROGRAM:
+                    program = read_program(frame, len(self.joints))
+                else:
+                    frames.check_robot_cmd(frame, len(self.joints))
+                    program = None
             except p.ProtocolError as exc:
                 self.counts["bad"] += 1
                 _log.warning("robot %s: command refused: %s", self.opts.robot, exc)
                 continue
-            self._apply(frame, now, wall)
+            self._apply(frame, program, now, wall)
 
-    def _apply(self, frame: frames.Frame, now: int, wall: int) -> None:
+    def _apply(self, frame: frames.Frame, program: Program | None, now: int, wall: int) -> None:
         deadline = frame.aux * 1000
         if frame.flags == frames.OP_STOP:
             self._safe_stop("stop command")
             return
-        if wall - frame.stamp > deadline:
+        age = wall - frame.stamp
+        if age > deadline:
             self.counts["stale"] += 1
+            why = f"{age / 1e6:.0f} ms old, over its {deadline / 1e6:g} ms deadline"
+            if frame.flags == frames.OP_ENABLE:  # answered, so the link knows the robot is still not enabled
+                self._set_mode(self.mode, f"enable refused: {why}")
+            elif program is not None:
+                self.player.refuse(program, frame.seq, "refused", why)
+                self._publish_status()
             return
         if frame.flags == frames.OP_ENABLE:
-            self.target = self._measure()[0]
-            self._deadline_ns, self._last_cmd = deadline, now
-            self._world_lost = False
-            self._set_mode(frames.ENABLED, "enabled")
+            self._enable(deadline, now)
         elif self.mode != frames.ENABLED:
             self.counts["ignored"] += 1
+            if program is not None:
+                self.player.refuse(program, frame.seq, "ignored", f"the robot is {frames.MODES[self.mode]}")
+            self._publish_status()
+        elif program is not None:
+            self.counts["programs"] += 1
+            self.player.start(program, frame.seq, self.target)
+            self._watch = None  # a whole command: no stream of moves to watch
+            self._publish_status()
         else:
+            if self.player.playing and not self.player.by_servo:
+                self.player.end("replaced", "a move came")
             self.target = np.array(frame.values)
-            self._deadline_ns, self._last_cmd = deadline, now
+            self._deadline_ns, self._last_cmd, self._watch = deadline, now, "move"
             self.counts["moves"] += 1
+
+    def _enable(self, window_ns: int, now: int) -> None:
+        """Enabled: hold the pose until a move or a program comes, within ``window_ns`` (the enable window)."""
+        if not self._offsets and not self.player.playing:
+            self.target = self._measure()[0]
+        self._deadline_ns, self._last_cmd, self._watch = window_ns, now, "enable"
+        self._world_lost = False
+        self._set_mode(frames.ENABLED, "enabled")
+
+    def _play(self) -> None:
+        """Targets from a program played here; say when a program is done."""
+        target = self.player.target()
+        if target is not None:
+            self.target = target
+        if self.player.done():
+            self._publish_status()
 
     def _watchdogs(self, now: int) -> None:
         if self.mode != frames.ENABLED:
             return
+        quiet = now - self._last_cmd
         if self._world_lost or not self._world_present:
             self._safe_stop(f"world {self.opts.world!r} lost (its liveliness token is gone)")
-        elif now - self._last_cmd > self._deadline_ns:
-            self._safe_stop(f"no fresh command for {(now - self._last_cmd) / 1e6:.0f} ms "
-                            f"(deadline {self._deadline_ns / 1e6:g} ms)")
+        elif self._watch == "enable" and quiet > self._deadline_ns:
+            self._safe_stop(f"no move or program within the enable window ({self._deadline_ns / 1e6:g} ms after "
+                            "robot_enable)")
+        elif self._watch == "move" and quiet > self._deadline_ns:
+            self._safe_stop(f"no fresh command for {quiet / 1e6:.0f} ms (deadline {self._deadline_ns / 1e6:g} ms)")
 
     def _safe_stop(self, reason: str) -> None:
-        """Hold the joints where they stand, and say why."""
-        self.target = self._measure()[0]
+        """Hold the joints where they stand (a servo that plays programs: where its program stands), and say
+        why."""
+        if self.player.playing:
+            self.player.end("stopped", reason)
+        if not self._offsets:
+            self.target = self._measure()[0]
+        self._watch = None
         self._set_mode(frames.SAFE_STOP, reason)
 
     def _set_mode(self, mode: int, reason: str) -> None:
         changed = mode != self.mode or reason != self.reason
         self.mode, self.reason = mode, reason
-        if changed and self.session is not None:
+        if changed:
+            self._status_ns = time.time_ns()
+            self._publish_status()
+            _log.info("robot %s: %s (%s)", self.opts.robot, frames.MODES[mode], reason)
+
+    def _publish_status(self) -> None:
+        """Say the robot's mode, counts and program on ``status`` (on each change of them)."""
+        if self.session is not None:
             with contextlib.suppress(Exception):
                 self._status.put(p.encode(self.describe()))
-            _log.info("robot %s: %s (%s)", self.opts.robot, frames.MODES[mode], reason)
 
     def close(self) -> None:
         if self.session is None:

@@ -84,6 +84,22 @@ class Servo(Module):
         """The servo's joints, in the order of its vectors."""
         return list(self._joints)
 
+    @property
+    def slides(self) -> list[bool]:
+        """Which of `joints` are slide joints (their values in m, the others in rad)."""
+        return list(self._slides)
+
+    @property
+    def program(self) -> Motion | None:
+        """The motion program the servo plays now (None before `setup`): a new object each time a sequence
+        begins, which is how a robot link sees that one did (`program_start_ns` says when)."""
+        return self._motion
+
+    @property
+    def program_start_ns(self) -> int:
+        """The simulated time at which `program` began (the start of the step that began it)."""
+        return self._t0
+
     # -- declarations -----------------------------------------------------------------------------------
     def _units(self) -> tuple[str, str, str]:
         if self._slides and all(self._slides):

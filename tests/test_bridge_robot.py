@@ -110,8 +110,14 @@ def test_a_robot_refuses_commands_that_arrive_after_their_deadline(rig):
         time.sleep(0.02)
     time.sleep(0.3)
     status = brain.robot_status("slow")
-    assert status["mode"] == "disabled" and status["counts"]["forwarded"] >= 10
+    assert status["mode"] == "disabled" and status["reason"].startswith("enable refused: "), status
+    # moves went while the enable was unanswered; once the robot said it stayed disabled, they were ignored
+    counts = status["counts"]
+    assert counts["forwarded"] + counts["ignored"] >= 10 and counts["ignored"] >= 1, counts
+    assert status["robot_counts"]["moves"] == 0
     assert abs(status["last_state"]["q"][0]) < 0.01  # it never moved
+    reply = brain.motion("slow", [0.3, 0.0, 0.0], route="robot")["robot"]
+    assert reply["forwarded"] is False and reply["ignored"] is True and "enable refused" in reply["reason"], reply
 
 
 def test_bad_robot_frames_are_counted_and_ignored(rig):
