@@ -1,88 +1,121 @@
-"""The drawer found by stereo vision (the paper's Fig. 21): see the knob, reach it, pull the drawer open.
+"""The drawer opened by the humanoid (the paper's Fig. 21): the kid sees the knob, reaches it, pulls.
 
-The scene (`scenarios/drawer.yaml`): a cabinet with a drawer on a slider and a red knob, an arm of four
-servoed hinges with a fork for a hand, a head on a mast. The brain:
+The scene (`scenarios/drawer.yaml`): the kid (models/kid.xml, 0.61 m, 4.2 kg) stands in a slight crouch
+before a low cabinet, its head turned to the drawer's red knob and looking down at it, the ankle
+stabilizer on. The brain:
 
-1. gives the head its eyes: a stereo camera module (`modules.stereo`) added to the running world;
-2. extracts the knob's colour region in both eyes (red: the largest such blob in each image), checks
-   that both lie on the same rows (the pair is rectified), and triangulates the regions' centroids from
-   their disparity; the dense depth from disparity over the region gives the knob's visible face;
-3. plans the reach with inverse kinematics (`modules.ik`, mink): the fork over the knob, pointing down,
-   then lowered over the knob's stem behind its disc, then drawn back along the slider's axis, each
-   pose solved from the one before;
-4. plays the poses as one motion program of the servo and watches the drawer open; at the end it looks
-   again and triangulates where the knob has gone.
+1. gives the head's camera two eyes 6 cm apart (`modules.stereo`, added to the running world), finds
+   the knob's colour region in both (red: the largest such blob in each image), checks that both lie
+   on the same rows (the pair is rectified), and triangulates the regions' centroids from their
+   disparity: the knob's visible face, in the world frame;
+2. plans with whole-body inverse kinematics (`modules.whole_body`: the feet planted, the centre of mass
+   over the middle of the soles, the pelvis free to lower and lean): the right hand's tip 5 cm in
+   front of the face pointing at it, then on it; then the hand drawn back along the slider's axis in
+   small steps, each pose solved from the one before;
+3. plays the reach as a servo program, takes the knob in its hand (a ball joint made at run time
+   between the hand's tip and the knob: the grip holds the knob and lets the wrist turn about it),
+   plays the pull slowly (the drawer's reaction leans the kid forward; the ankle stabilizer keeps the
+   ZMP inside the soles), lets go (the joint removed) and stands up again.
+
+While it acts it watches its balance: the ZMP's margin inside the support polygon, the pelvis's height
+and the feet.
 
     .venv/bin/python examples/drawer.py                        # prints what it saw, planned and did
     .venv/bin/python examples/drawer.py --save runs/drawer.png # the eyes' images and the colour regions
     .venv/bin/python examples/drawer.py --no-vision            # no renderer here: the knob where the
                                                                # scene's drawing puts it, IK and the pull
 
-The knob's true position (``core.knob.pos``) is read only to report the triangulation's error.
+The knob's true position (``core.knob.pos``) and the drawer's opening (``core.drawer_slide.q``) are read
+only to report how well it went; the robot's own hand does the pulling.
 """
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from dynabrain.modules.ik import IkResult, InverseKinematics, Target
+from dynabrain.modules.ik import Target
 from dynabrain.modules.stereo import Region, StereoCamera, largest_region, to_world, triangulate
+from dynabrain.modules.whole_body import WholeBody, WholeBodyResult
 from dynabrain.orchestrator import World, load_world
 
 SCENARIO = Path(__file__).resolve().parents[1] / "scenarios" / "drawer.yaml"
-EYES = {"targets": ["head"], "width": 160, "height": 120, "baseline": 0.1, "num_disparities": 48}
-"""The head's stereo camera: 160 x 120 eyes 10 cm apart (the knob is about 40 cm from the robot)."""
+EYES = {"targets": ["eye"], "width": 320, "height": 240, "baseline": 0.06, "num_disparities": 64}
+"""The head's stereo camera: 320 x 240 eyes 6 cm apart (the knob is about 0.3 m from them: 43 px of
+disparity)."""
 EYES_PERIOD = "500ms"
-KNOB_DRAWN = np.array([0.38, 0.0, 0.38])
-"""Where the scene's drawing puts the knob (models/drawer.xml); used only with --no-vision."""
-BEHIND_M = 0.03
-"""The fork goes down this far behind the knob's centre: between its disc (7.5 mm thick) and the drawer."""
-ABOVE_M = 0.08
-"""The fork's tip first comes this far above the knob's centre, clear of the disc (30 mm radius)."""
-BELOW_M = 0.01
-"""Lowered, the tip is this far below the knob's centre: the fingers straddle the stem, behind the disc."""
-PULL_M = 0.2
-PULL_STEPS = 4
-DOWN = {"axis": [0, 0, 1], "direction": [0, 0, -1]}
-"""The fingers point down (the tip site's z along them), whatever the arm's heading."""
-DURATIONS_S = {"over": 1.0, "lower": 0.6, "pull": 0.5}
-SETTLE_S = 0.6
+HAND = "r_hand_tip"
+"""The site at the end of the right hand: it goes on the knob's face."""
+KNOB_FACE_M = 0.004
+"""The knob's face, where the hand's tip goes, lies this far in front of its centre (its disc is 8 mm thick)."""
+KNOB_DRAWN = np.array([0.2, -0.14, 0.36])
+"""Where the scene's drawing puts the knob's centre (models/drawer.xml); used only with --no-vision."""
+APPROACH_M = 0.05
+"""The hand first comes this far in front of the face, then onto it."""
+FORWARD = {"axis": [0, 0, -1], "direction": [1, 0, 0]}
+"""The hand points at the knob (the tip lies along the hand's -z), whatever its roll."""
+PULL_M = 0.18
+PULL_STEPS = 6
+GRIP_TOLERANCE_M = 0.01
+"""The hand takes the knob only when its tip is this close to where the eyes put the face."""
+DURATIONS_S = {"reach": 1.0, "take": 0.6, "pull": 0.5, "let go": 1.0}
+STAND_S = 1.0
+"""The scenario's crouch is done and the kid stands still by then."""
+SETTLE_S = 0.4
+WATCH_S = 0.01
+"""The brain reads its balance this often (the ZMP sensor's period)."""
 
 
 @dataclass(frozen=True)
 class Sighting:
-    """The knob as the eyes see it: the regions, their disparity (px), the triangulated centre and the
-    visible face (median of the region's points from the dense depth), both in the world frame (m)."""
+    """The knob as the eyes see it: the regions, their disparity (px), the row offset between them (px),
+    and the triangulated centre of the regions in the world frame (m): the disc's face and the rim the
+    eyes see from above, whose centroid lies near the disc's centre."""
 
     left: Region
     right: Region
     disparity_px: float
     row_offset_px: float
     position: np.ndarray
-    face: np.ndarray
+
+
+@dataclass
+class Balance:
+    """What the brain saw of its balance while it acted: the least ZMP margin inside the support
+    polygon (m), whether the ZMP ever left it, the lowest pelvis (m), how far the feet slid (m)."""
+
+    min_margin_m: float = math.inf
+    left_polygon: bool = False
+    min_pelvis_z_m: float = math.inf
+    feet_slip_m: float = 0.0
+    feet_at: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True)
 class Outcome:
-    """What the brain did: what it saw before and after, the poses it solved, how far the drawer came."""
+    """What the brain did: what it saw, the poses it solved, whether it held the knob, how far the drawer
+    came, and its balance meanwhile."""
 
     sighting: Sighting | None
     knob_true: np.ndarray
-    poses: list[IkResult]
+    poses: list[WholeBodyResult]
+    gripped: bool
     opened_m: float
-    seen_after: Sighting | None
+    balance: Balance
+    pelvis_z_m: float
 
     @property
     def reached(self) -> bool:
         return bool(self.poses) and all(p.reached for p in self.poses)
 
     @property
-    def triangulation_error_m(self) -> float:
+    def sighting_error_m(self) -> float:
+        """How far the triangulated knob is from its true centre (m)."""
         return float("nan") if self.sighting is None else float(np.linalg.norm(self.sighting.position
                                                                                 - self.knob_true))
 
@@ -105,64 +138,94 @@ def look(world: World, eyes: str = "eyes", min_pixels: int = 6) -> Sighting | No
     if abs(rows) > 1.0 or disparity <= 0:
         return None
     focal, center, baseline = float(g(f"{eyes}.focal")), g(f"{eyes}.center"), world.modules[eyes].baseline
-    pos, rot = g(f"{eyes}.left.pos"), g(f"{eyes}.rot")
-    centre = to_world(triangulate(left.centroid[0], left.centroid[1], disparity, focal, center, baseline), pos, rot)
-    v, u = np.nonzero(left.mask)
-    points = to_world(triangulate(u + 0.5, v + 0.5, g(f"{eyes}.disparity")[v, u], focal, center, baseline), pos, rot)
-    points = points[np.all(np.isfinite(points), axis=1)]
-    face = np.median(points, axis=0) if len(points) else np.full(3, np.nan)
-    return Sighting(left, right, disparity, rows, centre, face)
+    point = triangulate(left.centroid[0], left.centroid[1], disparity, focal, center, baseline)
+    return Sighting(left, right, disparity, rows, to_world(point, g(f"{eyes}.left.pos"), g(f"{eyes}.rot")))
 
 
-def plan(ik: InverseKinematics, knob: np.ndarray, pull_m: float = PULL_M) -> list[IkResult]:
-    """The poses that hook the knob and draw it back ``pull_m`` along -x (the slider's axis), each solved
-    from the one before."""
-    tip = np.asarray(knob, dtype=float) + np.array([BEHIND_M, 0.0, 0.0])
-    waypoints = [tip + np.array([0.0, 0.0, ABOVE_M]), tip - np.array([0.0, 0.0, BELOW_M])]
-    waypoints += [tip - np.array([pull_m * (i + 1) / PULL_STEPS, 0.0, BELOW_M]) for i in range(PULL_STEPS)]
-    poses: list[IkResult] = []
-    for point in waypoints:
-        start = None if not poses else poses[-1].q
-        poses.append(ik.solve(Target("tip", pos=point, **DOWN), start=start))
+def plan(wb: WholeBody, face: np.ndarray, pull_m: float = PULL_M) -> list[WholeBodyResult]:
+    """The poses that bring the hand to the knob's face and draw it back ``pull_m`` along -x (the
+    slider's axis), each solved from the one before: the first two point the hand at the knob, the
+    pull leaves the hand's orientation to the solver (the grip lets the wrist turn)."""
+    face = np.asarray(face, dtype=float)
+    targets = [Target(HAND, pos=face - [APPROACH_M, 0.0, 0.0], **FORWARD), Target(HAND, pos=face, **FORWARD)]
+    targets += [Target(HAND, pos=face - [pull_m * (i + 1) / PULL_STEPS, 0.0, 0.0]) for i in range(PULL_STEPS)]
+    poses: list[WholeBodyResult] = []
+    for target in targets:
+        poses.append(wb.solve([target], start=poses[-1] if poses else None))
     return poses
-
-
-def program(poses: list[IkResult]) -> list[dict]:
-    """The servo's motion program: over the knob, lowered, then the pull in steps."""
-    durations = [DURATIONS_S["over"], DURATIONS_S["lower"]] + [DURATIONS_S["pull"]] * (len(poses) - 2)
-    return [p.step(d) for p, d in zip(poses, durations, strict=True)]
 
 
 def ticks(world: World, seconds: float) -> int:
     return round(seconds / (world.dt_ns * 1e-9))
 
 
+def play(world: World, steps: list[dict], balance: Balance) -> None:
+    """Play a servo program to its end and a settle, watching the balance."""
+    world.set("servo.sequence", steps)
+    watch(world, sum(float(s["duration"][:-1]) for s in steps) + SETTLE_S, balance)
+
+
+def watch(world: World, seconds: float, balance: Balance) -> None:
+    """Let the world run ``seconds``, reading the ZMP sensor, the pelvis and the feet every `WATCH_S`."""
+    chunk = ticks(world, WATCH_S)
+    for _ in range(max(1, round(seconds / WATCH_S))):
+        world.tick(chunk)
+        margin = float(world.get("zmp.margin"))
+        balance.left_polygon |= float(world.get("zmp.inside")) != 1.0
+        balance.min_margin_m = min(balance.min_margin_m, margin if math.isfinite(margin) else -math.inf)
+        balance.min_pelvis_z_m = min(balance.min_pelvis_z_m, float(world.get("core.pelvis.pos")[2]))
+        feet = np.concatenate([world.get("core.l_foot.pos"), world.get("core.r_foot.pos")])
+        if balance.feet_at is None:
+            balance.feet_at = feet
+        balance.feet_slip_m = max(balance.feet_slip_m, float(np.max(np.abs(feet - balance.feet_at))))
+
+
+def hand_at(world: World) -> np.ndarray:
+    view = world.core.mj
+    return np.array(view.data.site_xpos[view.model.site(HAND).id])
+
+
 def run(world: World, *, vision: bool = True, pull_m: float = PULL_M, save: Path | None = None) -> Outcome:
     """The whole task on a world built from the scenario (see the module docstring); ``save``: a PNG of
-    what the eyes saw first."""
-    sighting = None
+    what the eyes saw."""
     if vision:
         world.add_module(StereoCamera("eyes", **EYES), period=EYES_PERIOD)
-    world.tick(ticks(world, 0.2))  # the arm settles; the eyes have taken their first pair
+    world.tick(ticks(world, STAND_S))
+    balance = Balance()
+    watch(world, WATCH_S, balance)  # the eyes have taken a pair since the kid stands still
     knob_true = np.array(world.get("core.knob.pos"))
+    stand = _program_pose(world)
+
+    def outcome(sighting: Sighting | None, poses: list, gripped: bool) -> Outcome:
+        return Outcome(sighting, knob_true, poses, gripped, float(world.get("core.drawer_slide.q")), balance,
+                       float(world.get("core.pelvis.pos")[2]))
+
+    sighting = None
     if vision:
         sighting = look(world)
         if save is not None:
             save_view(world, save)
+        world.remove_module("eyes")  # seen: no more rendering
         if sighting is None:
-            return Outcome(None, knob_true, [], float(world.get("core.drawer_slide.q")), None)
-        knob = sighting.position
-    else:
-        knob = KNOB_DRAWN
-    ik = InverseKinematics.for_servo(world, "servo")
-    poses = plan(ik, knob, pull_m)
+            return outcome(None, [], False)
+    face = (sighting.position if sighting is not None else KNOB_DRAWN) - [KNOB_FACE_M, 0.0, 0.0]
+    poses = plan(WholeBody.for_servo(world, "servo"), face, pull_m)
     if not all(p.reached for p in poses):
-        return Outcome(sighting, knob_true, poses, float(world.get("core.drawer_slide.q")), None)
-    steps = program(poses)
-    world.set("servo.sequence", steps)
-    world.tick(ticks(world, sum(float(s["duration"][:-1]) for s in steps) + SETTLE_S))
-    seen_after = look(world) if vision else None
-    return Outcome(sighting, knob_true, poses, float(world.get("core.drawer_slide.q")), seen_after)
+        return outcome(sighting, poses, False)
+    play(world, [poses[0].step(DURATIONS_S["reach"]), poses[1].step(DURATIONS_S["take"])], balance)
+    if np.linalg.norm(hand_at(world) - face) > GRIP_TOLERANCE_M:
+        return outcome(sighting, poses, False)
+    grip = world.make_joint("knob", "r_hand", "grip", kind="ball", anchor=hand_at(world).tolist())
+    play(world, [p.step(DURATIONS_S["pull"]) for p in poses[2:]], balance)
+    world.remove_joint(grip)
+    play(world, [{"pose": stand, "duration": f"{DURATIONS_S['let go']}s"}], balance)
+    return outcome(sighting, poses, True)
+
+
+def _program_pose(world: World) -> dict[str, float]:
+    """The pose the servo's program holds now ({joint: degrees}): its target less the stabilizer's share."""
+    target = np.asarray(world.get("servo.target")) - np.asarray(world.get("servo.q_ref"))
+    return {j: math.degrees(float(v)) for j, v in zip(world.modules["servo"].joints, target, strict=True)}
 
 
 def save_view(world: World, path: Path) -> None:
@@ -177,7 +240,7 @@ def save_view(world: World, path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-vision", action="store_true", help="no eyes: the knob where the drawing puts it")
-    parser.add_argument("--save", type=Path, help="a PNG of the eyes' first images and the colour regions")
+    parser.add_argument("--save", type=Path, help="a PNG of the eyes' images and the colour regions")
     args = parser.parse_args()
     world = load_world(SCENARIO)
     try:
@@ -189,16 +252,17 @@ def main() -> None:
         print(f"knob seen: {s.left.pixels} / {s.right.pixels} red pixels, disparity {s.disparity_px:.2f} px, "
               f"rows {s.row_offset_px:+.2f} px")
         print(f"  triangulated at {np.round(s.position, 4)} m, true {np.round(out.knob_true, 4)} m: "
-              f"{out.triangulation_error_m * 1000:.1f} mm off; visible face at {np.round(s.face, 4)} m")
+              f"{out.sighting_error_m * 1000:.1f} mm off")
     elif not args.no_vision:
         print("the knob was not seen in both eyes")
-    for i, p in enumerate(out.poses):
-        print(f"pose {i}: {p.message}")
-    print(f"the drawer is open {out.opened_m * 1000:.0f} mm (asked {PULL_M * 1000:.0f} mm)")
-    if out.seen_after is not None:
-        moved = out.sighting.position - out.seen_after.position if out.sighting is not None else None
-        print(f"seen again at {np.round(out.seen_after.position, 4)} m"
-              + (f": the knob came {moved[0] * 1000:.0f} mm towards the robot" if moved is not None else ""))
+    for name, p in zip(["reach", "take"] + [f"pull {i + 1}" for i in range(PULL_STEPS)], out.poses, strict=False):
+        print(f"{name}: {p.message}; centre of mass {p.com_margin_m * 1000:.0f} mm inside the soles")
+    print(f"the hand {'held' if out.gripped else 'did not take'} the knob; "
+          f"the drawer is open {out.opened_m * 1000:.0f} mm (asked {PULL_M * 1000:.0f} mm)")
+    b = out.balance
+    print(f"balance: ZMP at least {b.min_margin_m * 1000:.1f} mm inside the support polygon"
+          f"{' (it left it)' if b.left_polygon else ''}, pelvis at least {b.min_pelvis_z_m * 1000:.0f} mm high "
+          f"(now {out.pelvis_z_m * 1000:.0f} mm), feet slid {b.feet_slip_m * 1000:.2f} mm")
 
 
 if __name__ == "__main__":

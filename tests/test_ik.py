@@ -1,8 +1,8 @@
 """Inverse kinematics (modules/ik.py, on mink): a target is reached to a fraction of a millimetre and the
 servo brings the arm there; several frames at once (whole body) with the other joints held; a target out
-of reach is a result with the best pose, not an exception; bad input names the call and the field. No
-renderer needed: the drawer's arm (scenarios/drawer.yaml) reaches the knob where the drawing puts it and
-pulls the drawer open."""
+of reach is a result with the best pose, not an exception; bad input names the call and the field (an
+arm on a post, tests/scenarios/post_arm.yaml). No renderer needed: the humanoid of scenarios/drawer.yaml
+reaches the knob where the drawing puts it with whole-body IK, pulls the drawer open and keeps standing."""
 
 from __future__ import annotations
 
@@ -20,11 +20,12 @@ sys.path.insert(0, str(ROOT / "examples"))
 import drawer  # noqa: E402
 
 DOWN = {"axis": [0, 0, 1], "direction": [0, 0, -1]}
+ARM = ROOT / "tests" / "scenarios" / "post_arm.yaml"
 
 
 @pytest.fixture()
 def arm():
-    world = load_world(drawer.SCENARIO)
+    world = load_world(ARM)
     world.tick(5)
     yield world
     world.close()
@@ -107,11 +108,23 @@ def test_bad_input_names_the_call_and_the_field(arm):
         assert where in str(err.value) and what in str(err.value), str(err.value)
 
 
-def test_the_arm_reaches_the_drawn_knob_and_pulls_the_drawer_open(arm):
-    """The drawer brain without eyes: IK to the knob where the drawing puts it, then the pull."""
-    out = drawer.run(arm, vision=False)
+def test_the_humanoid_reaches_the_drawn_knob_pulls_the_drawer_open_and_keeps_standing():
+    """The drawer brain without eyes: whole-body IK to the knob where the drawing puts it, the grip,
+    the pull, letting go; the kid's feet stay planted and the ZMP inside the soles throughout."""
+    world = load_world(drawer.SCENARIO)
+    try:
+        out = drawer.run(world, vision=False)
+        knob_now = np.array(world.get("core.knob.pos"))
+    finally:
+        world.close()
     assert out.reached, [p.message for p in out.poses]
-    assert max(p.position_error_m for p in out.poses) < 1e-4
-    assert out.opened_m > 0.15  # asked 0.2 m; the fork starts 17.5 mm behind the knob's disc
+    assert max(p.position_error_m for p in out.poses) < 1e-3
+    assert min(p.com_margin_m for p in out.poses) > 0.03  # each planned pose balanced, 3 cm inside the soles
+    assert out.gripped  # the servo brought the hand's tip within 1 cm of the knob's face
+    assert out.opened_m >= 0.15  # asked 0.18 m
     assert np.allclose(out.knob_true, drawer.KNOB_DRAWN, atol=1e-4)  # where it was when the brain began
-    assert arm.get("core.knob.pos")[0] == pytest.approx(drawer.KNOB_DRAWN[0] - out.opened_m, abs=1e-4)
+    assert knob_now[0] == pytest.approx(drawer.KNOB_DRAWN[0] - out.opened_m, abs=1e-4)
+    b = out.balance
+    assert not b.left_polygon and b.min_margin_m > 0.01  # the ZMP stayed 1 cm inside the support polygon
+    assert b.feet_slip_m < 1e-3 and b.min_pelvis_z_m > 0.27  # feet planted; crouched, never fallen
+    assert out.pelvis_z_m == pytest.approx(0.293, abs=0.005)  # standing in its crouch again at the end

@@ -1,8 +1,8 @@
 """The stereo camera (modules/stereo.py): two eyes a baseline apart whose pair is rectified as rendered
 (a point lies on the same row in both), depth from OpenCV's disparity that agrees with the rendered
-depth, the drawer's knob triangulated to within a few millimetres and the drawer pulled open by the
-brain that saw it (examples/drawer.py). A baseline of zero is refused, naming the module or call and the
-field. The matcher and the triangulation are checked on synthetic images everywhere; rendering is
+depth, the drawer's knob triangulated by the humanoid's head to within a few millimetres and the drawer
+pulled open by the humanoid that saw it (examples/drawer.py). A baseline of zero is refused, naming the
+module or call and the field. The matcher and the triangulation are checked on synthetic images everywhere; rendering is
 skipped, with the reason, where no offscreen renderer (EGL or OSMesa) works."""
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def test_a_baseline_of_zero_is_refused_naming_the_call_and_the_field(tmp_path):
         "name: zero\nworld: {step: 2ms, duration: 0.1s, core: mujoco}\n"
         f"scene: {{model: {ROOT / 'scenarios' / 'models' / 'drawer.xml'}}}\n"
         "modules:\n"
-        "  - {name: eyes, python: dynabrain.modules.stereo:StereoCamera, targets: [head],\n"
+        "  - {name: eyes, python: dynabrain.modules.stereo:StereoCamera, targets: [eye],\n"
         "     params: {baseline: 0mm}}\n")
     with pytest.raises(ScenarioError) as err:
         load_world(scenario)
@@ -88,9 +88,10 @@ def test_a_baseline_of_zero_is_refused_naming_the_call_and_the_field(tmp_path):
 # -- rendered ---------------------------------------------------------------------------------------------
 @pytest.fixture()
 def seen():
+    """The kid in its crouch, its head turned to the cabinet and looking down at it (its pose at 0.5 s)."""
     world = load_world(drawer.SCENARIO)
     world.add_module(StereoCamera("eyes", **drawer.EYES), period=drawer.EYES_PERIOD)
-    world.tick(5)
+    world.tick(255)
     yield world
     world.close()
 
@@ -98,10 +99,11 @@ def seen():
 @needs_renderer
 def test_the_pair_is_rectified_and_depth_from_disparity_agrees_with_the_rendered_depth(seen):
     g = seen.get
-    assert np.linalg.norm(g("eyes.right.pos") - g("eyes.left.pos")) == pytest.approx(0.1, abs=1e-6)
+    baseline = drawer.EYES["baseline"]
+    assert np.linalg.norm(g("eyes.right.pos") - g("eyes.left.pos")) == pytest.approx(baseline, abs=1e-6)
     rot = g("eyes.rot")
     assert np.allclose(rot.T @ rot, np.eye(3), atol=1e-6)
-    assert np.dot(g("eyes.right.pos") - g("eyes.left.pos"), rot[:, 0]) == pytest.approx(0.1, abs=1e-6)
+    assert np.dot(g("eyes.right.pos") - g("eyes.left.pos"), rot[:, 0]) == pytest.approx(baseline, abs=1e-6)
     assert np.array_equal(g("eyes.rectified")[0], np.round(g("eyes.rectified")[0] * 255) / 255)
     sighting = drawer.look(seen)
     assert sighting is not None
@@ -111,25 +113,25 @@ def test_the_pair_is_rectified_and_depth_from_disparity_agrees_with_the_rendered
     assert matched.mean() > 0.4
     error = np.abs(depth - rendered)[matched & (rendered < 2.0)]
     assert np.median(error) < 0.03  # the scene's wood and floor are textured; edges and shadows miss
-    # on the knob: one pixel of disparity is 37 mm of depth at 0.73 m; the matcher's 5 px blocks reach past
+    # on the knob: one pixel of disparity is 6 mm of depth at 0.3 m; the matcher's 5 px blocks reach past
     # the knob's edge to the drawer behind it, so the knob's inside (the region less its rim) is compared
     inside = cv2.erode(sighting.left.mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & matched
     assert inside.sum() > 20 and np.median(np.abs(depth - rendered)[inside]) < 0.015
 
 
 @needs_renderer
-def test_the_knob_is_triangulated_within_a_few_millimetres_and_the_drawer_pulled_open():
+def test_the_humanoid_finds_the_knob_within_a_few_millimetres_and_pulls_the_drawer_open():
     world = load_world(drawer.SCENARIO)
     try:
         out = drawer.run(world)
     finally:
         world.close()
     assert out.sighting is not None
-    assert out.triangulation_error_m < 3e-3, out.sighting.position
-    assert np.linalg.norm(out.sighting.face - out.knob_true) < 0.015  # the visible face, in front of the centre
-    assert out.reached and out.opened_m > 0.15
-    assert out.seen_after is not None  # it looks again: the knob came towards the robot as far as the drawer
-    assert out.sighting.position[0] - out.seen_after.position[0] == pytest.approx(out.opened_m, abs=5e-3)
+    assert abs(out.sighting.row_offset_px) < 0.25  # the same rows in both eyes
+    assert out.sighting_error_m < 3e-3, out.sighting.position  # 1.2 mm at 0.3 m, 52 px of disparity
+    assert out.reached and out.gripped and out.opened_m >= 0.15
+    b = out.balance
+    assert not b.left_polygon and b.min_margin_m > 0.01 and b.feet_slip_m < 1e-3 and b.min_pelvis_z_m > 0.27
 
 
 @needs_renderer
@@ -143,5 +145,5 @@ def test_a_fork_sees_the_same_and_the_module_passes_check_module(seen):
     finally:
         fork.close()
     core = MujocoCore("core", SceneSpec(model=str(ROOT / "scenarios" / "models" / "drawer.xml")))
-    eyes = StereoCamera("eyes", targets=["head"], width=48, height=36, num_disparities=16)
+    eyes = StereoCamera("eyes", targets=["eye"], width=48, height=36, num_disparities=16)
     check_module(eyes, core=core, period="10ms", ticks=6).assert_ok()
