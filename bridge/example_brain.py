@@ -123,18 +123,20 @@ def execute(world: BrainClient, keyframes: list[Keyframe], route: str, robot: st
         if event.get("kind") == "robot_status" and detail.get("robot") == robot and detail.get("mode") == "safe_stop":
             stops.append(str(detail.get("reason")))
         elif event.get("kind") == "robot_lost" and detail.get("robot") == robot:
-            stops.append("the robot was lost")
+            stops.append(f"the robot was lost at tick {event.get('tick')}")
 
     events = world.subscribe_events(on_event) if route != "sim" else None
     try:
         for kf in keyframes:
             t0 = time.monotonic()
-            while (s := (time.monotonic() - t0) / kf.seconds) < 1.0:
+            while (s := (time.monotonic() - t0) / kf.seconds) < 1.0 and not stops:
                 send(here + (kf.pose - here) * s)
                 time.sleep(1.0 / rate)
+            if stops:  # the robot stopped or was lost: the plan is not carried out, the brain stops here
+                break
             here = kf.pose
             log(f"executed {kf.name}")
-        for _ in range(int(0.3 * rate)):  # hold the last pose a moment
+        for _ in range(int(0.3 * rate) if not stops else 0):  # hold the last pose a moment
             send(here)
             time.sleep(1.0 / rate)
     finally:
