@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .archive import open_checked
 from .clocks import CLOCK_UNIT, FmuClock, read_clocks
 from .errors import FMUError
 from .paths import SHARED_LIB_EXT, binary_dir
@@ -125,7 +126,7 @@ def read_fmu_info(path: str | Path, label: str | None = None) -> FmuInfo:
         raise FMUError(f"FMU {name}: file not found")
     if path.is_dir() or not zipfile.is_zipfile(path):
         raise FMUError(f"FMU {name}: not a zip file (an FMU is a zip archive with a modelDescription.xml)")
-    with zipfile.ZipFile(path) as zf:
+    with open_checked(path, f"FMU {name}") as zf:  # (a zip bomb is refused before a member is read)
         names = set(zf.namelist())
     if "modelDescription.xml" not in names:
         raise FMUError(f"FMU {name}: the archive has no modelDescription.xml")

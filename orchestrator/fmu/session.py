@@ -456,9 +456,7 @@ class Session:
 
 
 def _extract(info: FmuInfo, folder: str) -> None:
-    from fmpy import extract
+    """Unzip the FMU within `archive`'s limits (size, ratio, no member outside ``folder``)."""
+    from .archive import extract
 
-    try:
-        extract(info.path, folder)
-    except Exception as exc:
-        raise FMUError(f"{info.label}: cannot extract: {exc}") from None
+    extract(info.path, folder, info.label)

@@ -8,8 +8,6 @@ constants below bound them further, in SI units. The pydantic field types at the
 from __future__ import annotations
 
 import math
-import os
-import re
 from typing import Annotated, Any
 
 import numpy as np
@@ -42,6 +40,11 @@ each body's inertia over all the model's degrees of freedom: 1,000 boxes take 0.
 so a larger scene is refused before anything is made."""
 MAX_GRID = MAX_BODIES
 """The most copies one ``grid`` makes (as many as a scene holds)."""
+MAX_MODEL_BYTES = 16 * 1024 * 1024
+"""The largest model file (MJCF, URDF), its includes counted with it: 16 MiB, read with that bound; only a
+regular file is read (no device, FIFO or folder). See `scenario.modelfile`."""
+MAX_ASSET_BYTES = 256 * 1024 * 1024
+"""The largest asset a model file names (a mesh, a texture, a height field): 256 MiB, a regular file."""
 
 CORE_LIMITS: dict[str, tuple[float, float]] = {
     "friction": (0.0, MAX_FRICTION), "restitution": (0.0, 1.0), "gravity": (-MAX_GRAVITY, MAX_GRAVITY),
@@ -68,21 +71,6 @@ def scene_bodies(scene: Any) -> int:
         else:
             total += 1
     return total
-
-
-_BODY_TAG = {".urdf": re.compile(rb"<link[\s/>]"), "": re.compile(rb"<body[\s/>]")}
-
-
-def model_file_bodies(path: str) -> int:
-    """How many bodies a model file declares (``<body>`` elements of MJCF, ``<link>`` of URDF), counted in
-    its text before the engine reads it; 0 when it cannot be read (the engine says why). Included files
-    and replicated elements are not counted."""
-    try:
-        with open(path, "rb") as f:
-            text = f.read()
-    except OSError:
-        return 0
-    return len(_BODY_TAG.get(os.path.splitext(path)[1].lower(), _BODY_TAG[""]).findall(text))
 
 
 def too_many_bodies(n: int) -> str | None:

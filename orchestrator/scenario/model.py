@@ -378,10 +378,7 @@ class _Builder:
         if too_many:
             self.report(("scene",), too_many)
             return
-        scene, scene_problems = parse_scene(m.scene, self.src, self.sc.dir, cfg.core)
-        too_many = limits.too_many_bodies(limits.model_file_bodies(scene.model)) if scene.model else None
-        if too_many:
-            scene_problems.append(self.src.problem(("scene", "model"), f"{scene.model}: {too_many}"))
+        scene, scene_problems = parse_scene(m.scene, self.src, self.sc.dir, cfg.core)  # (a model file counted)
         self.problems += scene_problems
         params = self._core_params(cls)
         if scene_problems:

@@ -34,6 +34,7 @@ from ..kernel.units import parse_quantity
 from ..kernel.yamlsrc import Path, YamlSource
 from . import limits
 from .limits import bounded, short
+from .modelfile import ModelFileError, count_bodies
 
 _BODY_KEYS = ("name", "size", "pos", "quat", "euler", "mass", "color", "joint", "parent", "friction", "restitution",
               "mesh", "scale")
@@ -59,6 +60,11 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
         path = model if os.path.isabs(model) else os.path.join(base_dir, model)
         if not os.path.exists(path):
             problems.append(src.problem(("scene", "model"), f"model file {model!r} not found (looked in {base_dir})"))
+        else:
+            try:  # within limits, before the engine reads it
+                count_bodies(path)
+            except ModelFileError as exc:
+                problems.append(src.problem(("scene", "model"), f"{model}: {exc}"))
         return SceneSpec(model=path), problems
     if data is not None and not isinstance(data, list):
         problems.append(src.problem(("scene",), f"a scene is a list of shapes or {{model: file}}, got {short(data)}"))
