@@ -374,11 +374,14 @@ TABLE: dict[str, Call] = {
     "release": Call(NoArgs, "", "`{holder: null}`", server=True),
     "motion": Call(MotionArgs, "`robot`, `targets` (a list in the rig's joint order, or `{joint: value}`), `route` "
                    "(`sim`, `robot`, `both`), `sent_ns`, `seq`",
-                   "`{sim: ..., robot: {forwarded, seq, age_ms} or {forwarded: false, reason}}`", server=True),
-    "robot_enable": Call(RobotRef, "`robot`", "", server=True),
+                   "`{sim: ..., robot: {forwarded, seq, age_ms} or {forwarded: false, reason} (too old) or "
+                   "{forwarded: false, ignored: true, reason} (the robot is disabled or safe-stopped)}`", server=True),
+    "robot_enable": Call(RobotRef, "`robot`", "`{sent, enable_window_ms}`: a move or program must reach the robot "
+                         "within the enable window, or it safe-stops", server=True),
     "robot_stop": Call(RobotRef, "`robot`", "", server=True),
-    "robot_status": Call(RobotRef, "`robot`", "link state, counts, the last measured state, shadow statistics",
-                         read_only=True, server=True),
+    "robot_status": Call(RobotRef, "`robot`", "link state (`alive`, `lost_tick`, `mode`, `mode_tick`, `reason`), "
+                         "counts, the last program and the robot's word on it, the last measured state, shadow "
+                         "statistics", read_only=True, server=True),
 }
 """Every call of the protocol (`PROTOCOL.md` lists them in this order)."""
 
