@@ -78,8 +78,8 @@ from dynabrain.orchestrator.kernel.core import (
 from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Capabilities, Param, Port, SetupContext
 
+from . import animate, warning_log
 from . import scene as ms
-from . import warning_log
 
 warning_log.install()  # MuJoCo's warnings to the log, each kind once, counted (no MUJOCO_LOG.TXT)
 
@@ -210,6 +210,9 @@ class CompiledScene:
         self._map_bodies(layout, edits)
         self._map_joints(layout, edits)
         self._map_actuators_sensors(layout)
+        # the robots a selection left out, animated (`mujoco.animate`); None when there are none
+        robots = [e for e in edits.frozen if getattr(e, "animated", False) and e.object not in edits.absent]
+        self.anim = animate.plan(layout.motor_joints, self.joint_slices, robots)
         self._map_free(layout)
         self._attach(data if data is not None else mujoco.MjData(model))
 
@@ -330,8 +333,9 @@ class CompiledScene:
 
     def _map_free(self, layout: ms.Layout) -> None:
         rows, ids, dofs = [], [], []
+        animated = self.anim.bodies if self.anim is not None else frozenset()
         for row, b in enumerate(layout.free_bodies):
-            bid = self.body_id.get(b)
+            bid = self.body_id.get(b) if b not in animated else None  # (an animated robot ignores them)
             free = [self.joint_slices[j] for j in layout.body_joints[b]
                     if j in self.joint_slices and self.joint_slices[j].nq == 7]
             if bid is not None and free:  # not frozen (fused into the world, or kept as a static body)
@@ -420,6 +424,15 @@ class MujocoCore(EditedCore):
         if lay.actuators:
             ins.append(Port("ctrl", (len(lay.actuators),), "1"))
             ins += [Port(f"{a}.ctrl", (), "1", view_of=("ctrl", i)) for i, a in enumerate(lay.actuators)]
+        if lay.motor_joints:
+            unit = {lay.qunits[lay.qjoints.index(j)][0] for j in lay.motor_joints}
+            ut = unit.pop() if len(unit) == 1 else "1"
+            nan = float("nan")
+            ins.append(Port("joint_target", (len(lay.motor_joints),), ut, start=nan, doc="where each joint with "
+                            "a motor goes while its robot is animated (not selected; `mujoco.animate`); NaN: "
+                            "it stays where it is"))
+            ins += [Port(f"{j}.target", (), ut, view_of=("joint_target", i), start=nan)
+                    for i, j in enumerate(lay.motor_joints)]
         ins += body_inputs(lay.free_bodies)
         if lay.sensors:
             outs.append(Port("sensordata", (lay.nsensordata,), "1", doc="all sensor values, MuJoCo order"))
@@ -435,6 +448,7 @@ class MujocoCore(EditedCore):
         self._out_views(self._own_out)
         lay = self._layout
         self._force, self._ctrl = np.zeros(len(lay.qjoints)), np.zeros(len(lay.actuators))
+        self._target = np.full(len(lay.motor_joints), np.nan)
         self._wrench, self._vel = np.zeros(6 * len(lay.free_bodies)), np.full(6 * len(lay.free_bodies), np.nan)
         self._vel_unset = self._vel.tobytes()  # the velocity inputs' bytes while they ask for nothing
         self._moves: tuple | None = None  # (structure, copies) of `step`, made on first use
@@ -476,7 +490,7 @@ class MujocoCore(EditedCore):
             raise DynabrainError(f"core {self.name!r}: its outputs are bound without `out_flat`; the core writes "
                                  "them through it (bind as the World does)")
         for attr, key in (("_force", "joint_force"), ("_ctrl", "ctrl"), ("_wrench", "body_wrench"),
-                          ("_vel", "body_velocity")):
+                          ("_vel", "body_velocity"), ("_target", "joint_target")):
             if self.inp.get(key) is not None:
                 setattr(self, attr, np.asarray(self.inp[key]).reshape(-1))
 
@@ -496,9 +510,13 @@ class MujocoCore(EditedCore):
         if self._vel.tobytes() != self._vel_unset:  # a velocity input holds a value
             self._set_velocities(s)
         m, d = s.model, s.data
+        anim = s.anim
+        before = s.qpos[anim.drive_qadr] if anim is not None else None  # (a copy: fancy indexing)
         _step2(m, d)
         if self._nsub > 1:
             mujoco.mj_step(m, d, self._nsub - 1)
+        if anim is not None:  # animated robots: where their motion puts them, before kinematics and sensors
+            animate.animate(anim, s.qpos, s.qvel, self._target, before, dt_ns * 1e-9)
         _step1(m, d)
         bad = s.bad_qpos.number + s.bad_qvel.number + s.bad_qacc.number
         if bad != s.warnings_seen:  # MuJoCo's own checks: NaN, inf or |x| > 1e10 in qpos, qvel, qacc
@@ -757,7 +775,8 @@ class MujocoCore(EditedCore):
             for j in lay.body_joints[b]:
                 qa, nq, _da, _nv = s.joint_slices[j]
                 joints.append((j, tuple(map(float, s.qpos[qa:qa + nq]))))
-        return ms.FrozenObject(obj, tuple(bodies), tuple(joints))
+        robot = bool({j for j, _ in joints} & animate.driven_joints(s.model))  # a robot is animated, not frozen
+        return ms.FrozenObject(obj, tuple(bodies), tuple(joints), robot)
 
     def _weld_data(self, a: str, b: str) -> tuple:
         return ms.weld_data(*self.body_pose(a), *self.body_pose(b))
@@ -775,6 +794,9 @@ class MujocoCore(EditedCore):
         if body not in lay.free:
             raise ms.fail(self.name, f"body {body!r} has no free joint; place moves free bodies")
         joint = next((j for j in lay.body_joints[body] if j in s.joint_slices and s.joint_slices[j].nq == 7), None)
+        if joint is not None and s.anim is not None and body in s.anim.bodies:
+            raise ms.fail(self.name, f"body {body!r} is animated (a robot not selected: it holds its place); "
+                          "select its object with make() first")
         if joint is None:
             state = "absent" if body not in s.body_id else "frozen"
             raise ms.fail(self.name, f"body {body!r} is {state}; select its object with make() first")

@@ -8,12 +8,18 @@ joints, gets the pose it had when it was frozen baked into its bodies, and is fu
 geoms stay, as static world geoms that moving bodies still collide with. Bodies that something refers to
 (a weld, an exclusion, a sensor) are not fused and stay as static bodies. An absent object (`make` with
 ``others="absent"``, `Edits.absent`) is not in the model at all: a primitive scene never builds its
-bodies, a model file's are deleted (`_leave_out`: refused, naming what refers to them, when an actuator,
-sensor, equality, tendon, contact pair or exclusion, or a tracking camera or light does), so it costs
-nothing, where a frozen object's static geoms still cost MuJoCo per-geom kinematics and collision every
-step (195 frozen boxes: 16 us a step against 13 for 5 boxes alone). The core maps every
-compiled model back onto one fixed layout (the unedited model's bodies, joints, actuators and sensors),
-by name, so that its block ports keep their shapes across structures.
+bodies, a model file's are deleted with what acts only within them (`refs.leave_out`: refused, naming
+it, when a sensor reads them or an actuator, equality, tendon, contact pair or exclusion, or a tracking
+camera or light ties them to what stays), so it costs nothing, where a frozen object's static geoms
+still cost MuJoCo per-geom kinematics and collision every step (195 frozen boxes: 16 us a step against
+13 for 5 boxes alone). The core maps every compiled model back onto one fixed layout (the unedited
+model's bodies, joints, actuators and sensors), by name, so that its block ports keep their shapes
+across structures. What refers to a frozen object's joints (actuators, sensors, fixed tendons and
+equalities) goes with them (`refs.prune`).
+
+Robots. An object with joints that actuators drive (a robot) is not frozen but animated
+(`FrozenObject.animated`, `mujoco.animate`): it keeps its joints, so the modules that read them keep
+working, and follows its targets kinematically.
 
 Contacts. All contacts use a soft contact of constant impedance ``IMPEDANCE`` whose stiffness and
 damping are given directly (MuJoCo's negative ``solref``): natural frequency ``wn`` (see
@@ -37,6 +43,8 @@ from dynabrain.orchestrator.kernel.core import FLEX_SHAPES, SHAPES, BodySpec, Ed
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.portable import state_type
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
+
+from . import animate, refs
 
 ENGINE = "mujoco"
 IMPEDANCE = 0.99
@@ -178,7 +186,7 @@ class SpecSource:
         """A fresh spec with the bodies of ``bake`` frozen (pose in parent, or None: keep), and the
         names of the joints that froze; with the bodies added and removed of ``scene_key``, and without
         the absent objects of ``absent`` (object -> its bodies): a primitive scene never builds them, a
-        model file's are deleted (`_leave_out`)."""
+        model file's are deleted (`refs.leave_out`)."""
         gone = {b for bodies in (absent or {}).values() for b in bodies}
         if self.base is None:
             first, self._first = self._first, None
@@ -199,7 +207,7 @@ class SpecSource:
                     raise fail(self.core, f"{_where(b)}a body of that name exists already")
                 _add_body(self.core, spec, spec.worldbody, b, b.name in bake, bake.get(b.name),
                           degree=bool(spec.compiler.degree))
-            removed = _leave_out(self.core, spec, absent) if absent else set()
+            removed = refs.leave_out(self.core, spec, absent) if absent else set()
             for name, rel in bake.items():
                 removed |= _bake(spec.body(name), rel, spec)
         for name in bake:
@@ -214,53 +222,6 @@ class SpecSource:
             size = self.base_size + _bodies_size(edits.scene_key()[0])
         sliders = sum(w.kind == "slider" for w in edits.welds)  # a carriage body on a slide joint each
         return size + ModelSize(nbody=sliders, nv=sliders, neq=2 * len(edits.welds))
-
-
-def _leave_out(core: str, spec: mujoco.MjSpec, absent: dict[str, tuple[str, ...]]) -> set[str]:
-    """Delete the absent objects' bodies from a model file's spec; the names of the joints that went
-    with them. An object that something else in the model refers to (an actuator, a sensor, an equality,
-    a tendon, a contact pair or exclusion, a camera or light that tracks it) is refused, naming it and
-    what refers to it: deleting it would break that (MuJoCo deletes what refers to a deleted element
-    silently, or fails to compile), and freezing it (``others="frozen"``) keeps it whole."""
-    joints: set[str] = set()
-    for obj, names in absent.items():
-        bodies = [spec.body(n) for n in names]
-        mine = set(names)  # the names of the object's bodies, joints, geoms and sites
-        for b in bodies:
-            mine |= {x.name for kind in (b.joints, b.geoms, b.sites, b.cameras, b.lights) for x in kind}
-        refs = [f"{kind} {x.name!r}" for kind, x, targets in _references(spec)
-                if mine & targets and not (kind in ("camera", "light") and x.name in mine)]
-        if refs:
-            raise fail(core, f"make(), field others: 'absent' cannot take object {obj!r} out of the model file: "
-                       f"{', '.join(refs[:6])}{', ...' if len(refs) > 6 else ''} refer{'s' if len(refs) == 1 else ''} "
-                       "to it; select it, or make with others='frozen' (it stays as a static obstacle)")
-        for b in bodies:
-            joints |= {j.name for j in b.joints}
-        spec.delete(bodies[0])  # the object's top body, with its subtree
-    for key in list(spec.keys):  # a keyframe's qpos has the deleted joints' values
-        spec.delete(key)
-    return joints
-
-
-def _references(spec: mujoco.MjSpec):
-    """(kind, element, names it refers to) for what can refer to bodies, joints, geoms and sites."""
-    for a in spec.actuators:
-        yield "actuator", a, {a.target, getattr(a, "refsite", "") or ""} - {""}
-    for x in spec.sensors:
-        yield "sensor", x, {x.objname, getattr(x, "refname", "") or ""} - {""}
-    for e in spec.equalities:
-        yield "equality", e, {e.name1, e.name2} - {""}
-    for t in spec.tendons:
-        path = t.path
-        yield "tendon", t, {w.target.name for w in (path[i] for i in range(len(path))) if w.target is not None}
-    for p in spec.pairs:
-        yield "contact pair", p, {p.geomname1, p.geomname2} - {""}
-    for x in spec.excludes:
-        yield "contact exclusion", x, {x.bodyname1, x.bodyname2} - {""}
-    for kind, items in (("camera", spec.cameras), ("light", spec.lights)):
-        for c in items:
-            if c.targetbody:
-                yield kind, c, {c.targetbody}
 
 
 def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec, *, named: bool = False) -> mujoco.MjSpec:
@@ -452,6 +413,9 @@ class Layout:
     sensors: tuple[tuple[str, int, int], ...]
     nsensordata: int
     geoms: dict[str, tuple[dict, ...]] = field(repr=False)
+    motor_joints: tuple[str, ...] = ()
+    """Hinge and slide joints an actuator drives directly, in actuator order: the rows of the
+    ``joint_target`` input, which animated robots follow (`mujoco.animate`)."""
 
 
 def make_layout(model: mujoco.MjModel) -> Layout:
@@ -482,7 +446,8 @@ def make_layout(model: mujoco.MjModel) -> Layout:
                   free_bodies=tuple(n for n in names if n in free),
                   joints=joints, qjoints=tuple(joints[j] for j in qj), qunits=qunits,
                   actuators=tuple(model.actuator(a).name for a in range(model.nu)), sensors=sensors,
-                  nsensordata=sum(s[1] for s in sensors), geoms=_geom_info(model, names))
+                  nsensordata=sum(s[1] for s in sensors), geoms=_geom_info(model, names),
+                  motor_joints=animate.motor_joints(model))
 
 
 def _geom_info(model: mujoco.MjModel, names: tuple[str, ...]) -> dict[str, tuple[dict, ...]]:
@@ -529,20 +494,25 @@ class FrozenObject(NamedTuple):
     joints: tuple[tuple[str, tuple[float, ...]], ...]
     """(joint, its qpos values) for every joint of the subtree: its outputs while frozen, and where it
     starts again when the object is selected."""
+    animated: bool = False
+    """A robot (joints that actuators drive): animated, not frozen (`mujoco.animate`): it keeps its joints,
+    which hold these values or follow their targets."""
 
 
 def build_structure(core: str, source: SpecSource, edits: Edits) -> tuple[mujoco.MjModel, tuple[str, ...]]:
     """Compile the structure ``edits``; return it and its moving bodies."""
     absent = set(edits.absent)
-    spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen if entry.object not in absent
+    spec, removed = source.spec({b.name: b.in_parent for entry in edits.frozen
+                                 if entry.object not in absent and not entry.animated
                                  for b in entry.bodies}, edits.scene_key(),
                                 {e.object: tuple(b.name for b in e.bodies) for e in edits.frozen if e.object in absent})
     _size_arena(spec, source.size(edits))
     if removed:
-        _prune(spec, removed)
+        refs.prune(core, spec, removed)
     gone = {b.name for e in edits.frozen if e.object in absent for b in e.bodies}
     welds = tuple(w for w in edits.welds if w.a not in gone)  # (both sides are absent, or neither: `make`)
     anchors = _made_joints(spec, welds)
+    animate.make_kinematic(spec, [e for e in edits.frozen if e.animated and e.object not in absent])
     groups = tuple(g for g in (tuple(n for n in grp if n not in gone) for grp in edits.groups) if len(g) > 1)
     for pair in _exclusions(spec, groups):
         spec.add_exclude(bodyname1=pair[0], bodyname2=pair[1])
@@ -645,25 +615,6 @@ def _bake(body: mujoco.MjsBody, rel: tuple | None, spec: mujoco.MjSpec) -> set[s
         removed.add(joint.name)
         spec.delete(joint)
     return removed
-
-
-def _prune(spec: mujoco.MjSpec, joints: set[str]) -> None:
-    """Remove what refers to removed joints: actuators, sensors, joint equalities, keyframes."""
-    trn_joint = (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT)
-    gone = set(joints)
-    for act in list(spec.actuators):
-        if act.trntype in trn_joint and act.target in joints:
-            gone.add(act.name)
-            spec.delete(act)
-    refers = (mujoco.mjtObj.mjOBJ_JOINT, mujoco.mjtObj.mjOBJ_ACTUATOR)
-    for sensor in list(spec.sensors):
-        if sensor.objtype in refers and sensor.objname in gone:
-            spec.delete(sensor)
-    for eq in list(spec.equalities):
-        if eq.type == mujoco.mjtEq.mjEQ_JOINT and (eq.name1 in joints or eq.name2 in joints):
-            spec.delete(eq)
-    for key in list(spec.keys):
-        spec.delete(key)
 
 
 def _exclusions(spec: mujoco.MjSpec, groups: tuple) -> list[tuple[str, str]]:
