@@ -5,7 +5,9 @@ target on the left with no block on it, and no block may fall to the floor. The 
 A* over pushes, every push tried in its simulator: an action moves one block 25 cm in one of four
 directions, slowly and carefully or fast, through the block's velocity input (a hand that moves the
 block and stops it where it wanted). The heuristic is the paper's: the distance to the target (in
-pushes) plus the number of blocks on the target block; a block on the floor costs infinity.
+pushes) plus the number of blocks on the target block; a block on the floor costs infinity. States
+whose blocks stand in the same centimetre cells are one state to the search (its closed set); each
+planner is run again without it, and the nodes it expanded printed beside.
 
 A careful planner moves the upper blocks away one by one before it moves the bottom one. Allowed to
 push fast, the brain finds the rougher plan a human would use: pull the bottom block out from under
@@ -13,6 +15,7 @@ the others, then push it on.
 
     .venv/bin/python examples/blocks_planner.py               # plan with fast pushes, compare, execute
     .venv/bin/python examples/blocks_planner.py --careful     # only the careful planner
+    .venv/bin/python examples/blocks_planner.py --no-compare  # not again without the closed set
     .venv/bin/python examples/blocks_planner.py --log runs/blocks.mcap   # the run and the plan, in Foxglove
 
     .venv/bin/dynabrain serve scenarios/blocks.yaml &                   # a world served over Zenoh
@@ -118,13 +121,24 @@ def start_positions(o: Outcome) -> dict[str, np.ndarray]:
     return {b: o.parent.signals[f"core.{b}.pos"][-1] for b in BLOCKS}
 
 
+GRID_M = 0.01
+"""The closed set's grid: two states whose blocks stand in the same centimetre cells are one (a push
+and its reverse bring the stack back to where it was, give or take a few millimetres)."""
+
+
+def cells(o: Outcome) -> tuple:
+    """The search's key of a state: each block's position on the `GRID_M` grid."""
+    return tuple(tuple(np.round(o.signals[f"core.{b}.pos"][-1] / GRID_M).astype(int).tolist()) for b in BLOCKS)
+
+
 def plan(world, speeds: tuple[str, ...], *, careful: bool = False, backend: str = "auto", batch=None,
-         max_expansions: int = 300) -> Plan:
+         max_expansions: int = 300, closed: bool = True) -> Plan:
     """A* over pushes (one push costs 1). ``careful``: only blocks with nothing on them are moved, as a
-    symbolic planner that does not simulate would insist."""
+    symbolic planner that does not simulate would insist. ``closed=False``: no closed set (a tree
+    search, every sequence of pushes its own node), to compare."""
     return search(world, actions(world.dt_ns * 1e-9, speeds), record=RECORD, heuristic=heuristic, goal=goal,
                   failed=careless if careful else fell, cost=lambda o: 1.0, backend=backend, batch=batch,
-                  max_expansions=max_expansions)
+                  max_expansions=max_expansions, key=cells, closed=closed)
 
 
 def describe(name: str, p: Plan) -> str:
@@ -132,7 +146,8 @@ def describe(name: str, p: Plan) -> str:
     return (f"{name}: {'found' if p.found else 'NO PLAN (best node shown)'} in {p.stats.wall_s:.2f} s, "
             f"{len(p.actions)} pushes: {steps}\n"
             f"   {p.stats.expanded} nodes expanded, {p.stats.generated} simulated ({p.stats.nodes_per_s:.0f}/s) "
-            f"in {p.stats.batches} batches, {len(p.stats.failed)} children refused (a block fell, or the careful rule)")
+            f"in {p.stats.batches} batches, {len(p.stats.failed)} children refused (a block fell, or the careful "
+            f"rule), {p.stats.duplicates} dropped (a state seen before)")
 
 
 def execute_remote(p: Plan, connect: str, settle_ticks: int) -> dict[str, np.ndarray]:
@@ -162,6 +177,8 @@ def main() -> None:
     ap.add_argument("--backend", default="auto", help="batch backend for the search (serial, processes, ...)")
     ap.add_argument("--log", type=Path, help="record the executed run and the plan to this MCAP file")
     ap.add_argument("--connect", help="also execute the plan on the blocks world served at this Zenoh endpoint")
+    ap.add_argument("--no-compare", dest="compare", action="store_false",
+                    help="do not plan again without the closed set (a tree search) to compare")
     opts = ap.parse_args()
     world = load_world(SCENARIO)
     try:
@@ -177,9 +194,13 @@ def main() -> None:
                               ("with the simulator (slow and fast, any block)", False)):
             if opts.careful and not careful:
                 continue
-            found[name] = p = plan(world, ("slow",) if careful else ("slow", "fast"), careful=careful,
-                                   backend=opts.backend)
+            speeds = ("slow",) if careful else ("slow", "fast")
+            found[name] = p = plan(world, speeds, careful=careful, backend=opts.backend)
             print(describe(name, p))
+            if opts.compare:
+                tree = plan(world, speeds, careful=careful, backend=opts.backend, closed=False)
+                print(f"   without the closed set: {tree.stats.expanded} nodes expanded, {tree.stats.generated} "
+                      f"simulated, {len(tree.actions)} pushes (cost {tree.cost:g}; with it {p.cost:g})")
         best = min(found.values(), key=lambda p: (not p.found, len(p.actions)))
         if len(found) == 2:
             polite, dynamic = found.values()
