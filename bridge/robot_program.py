@@ -101,7 +101,8 @@ def read_program(frame: frames.Frame, joints: int) -> Program:
     durations = body[:, 0]
     bad = np.flatnonzero((durations <= 0) | (durations != np.round(durations)) | (durations > 2.0 ** 53))
     if bad.size:
-        raise ProtocolError(f"robot program step {int(bad[0])}: duration {durations[bad[0]]!r} ns is not a whole "
+        step = int(bad[0])
+        raise ProtocolError(f"robot program step {step}: duration {float(durations[step]):g} ns is not a whole "
                             "number of ns > 0")
     poses = body[:, 1:].copy()
     poses.setflags(write=False)

@@ -12,8 +12,10 @@ import re
 import numpy as np
 import pytest
 
-from dynabrain.bridge import BrainClient, WorldRefusedError
+from dynabrain.bridge import BrainClient, WorldRefusedError, frames
 from dynabrain.bridge.errors import RobotLostError, RobotStoppedError
+from dynabrain.bridge.protocol import ProtocolError
+from dynabrain.bridge.robot_program import OP_PROGRAM, Program, program_cmd, read_program
 from dynabrain.bridge.testing import EmulatorProcess, Process, ServerProcess, wait_for
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -73,6 +75,35 @@ def test_a_servo_program_reaches_the_robot_as_its_timed_steps(rig):
         wait_for(lambda r=robot: np.abs(np.subtract(brain.robot_status(r)["last_state"]["q"], sim)).max() < 0.01,
                  what=f"robot {robot} to settle where the simulation did")
         assert brain.robot_status(robot)["mode"] == "enabled"  # a program is a whole command: no stream expected
+    brain.backtick(50)  # the servo's program comes back with the state: not news to the robots
+    brain.tick(60)
+    assert all(brain.robot_status(r)["counts"]["programs"] == 1 for r in ("arm", "pd"))
+
+
+def test_a_program_frame_round_trips_and_a_bad_one_is_refused_naming_the_fault():
+    program = Program((400_000_000, 300_000_001), np.radians([[30, 40, -50], [-20, 40, -50]]), loop=True,
+                      smooth=False)
+    frame = frames.unpack(program_cmd(program, seq=7, stamp_ns=1, deadline_ns=100_000_000), frames.ROBOT_CMD,
+                          finite=True)
+    assert frame.flags == OP_PROGRAM and frame.seq == 7 and frame.aux == 100_000
+    back = read_program(frame, 3)
+    assert back.durations_ns == program.durations_ns and np.array_equal(back.poses, program.poses)
+    assert back.loop is True and back.smooth is False and back.times_ns() == (0, 400_000_000, 700_000_001)
+
+    def bad(values, joints=3, aux=100):
+        return read_program(frames.Frame(frames.ROBOT_CMD, OP_PROGRAM, 0, 1, 1, aux, np.asarray(values, float), b""),
+                            joints)
+
+    with pytest.raises(ProtocolError, match=r"not 2 \+ steps \* \(1 \+ 3 joints\)"):
+        bad([0, 0, 1e8, 0.1, 0.2])
+    with pytest.raises(ProtocolError, match=r"step 1: duration 0\.5 ns is not a whole number"):
+        bad([0, 0, 1e8, 0, 0, 0, 0.5, 0, 0, 0])
+    with pytest.raises(ProtocolError, match="step 0: duration -1 ns"):
+        bad([0, 0, -1, 0, 0, 0])
+    with pytest.raises(ProtocolError, match="loop 2 and interpolation 0 must each be 0 or 1"):
+        bad([2, 0, 1e8, 0, 0, 0])
+    with pytest.raises(ProtocolError, match="no deadline"):
+        bad([0, 0, 1e8, 0, 0, 0], aux=0)
 
 
 def test_a_move_or_program_the_robot_ignores_is_reported_ignored_and_the_enable_window_named(rig):
