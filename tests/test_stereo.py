@@ -129,7 +129,7 @@ def test_the_humanoid_finds_the_knob_within_a_few_millimetres_and_pulls_the_draw
     assert out.sighting is not None
     assert abs(out.sighting.row_offset_px) < 0.25  # the same rows in both eyes
     assert out.sighting_error_m < 3e-3, out.sighting.position  # 1.2 mm at 0.3 m, 52 px of disparity
-    assert out.reached and out.gripped and out.opened_m >= 0.15
+    assert out.reached and out.gripped and out.grip_gap_m < 3e-3 and out.opened_m >= 0.15
     b = out.balance
     assert not b.left_polygon and b.min_margin_m > 0.01 and b.feet_slip_m < 1e-3 and b.min_pelvis_z_m > 0.27
 
