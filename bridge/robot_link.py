@@ -97,6 +97,7 @@ class RobotLink:
         self._service = service
         self._servo: Any = None
         self._plays = False
+        self._bus: Any = None  # the world's bus when the servo was looked up: a new one means a new structure
         self._seen: Any = None  # the servo's program when last looked at: only a new one goes to the robot
         self._watch_servo()
         key = lambda *parts: p.robot_key(world, rig.robot, *parts)  # noqa: E731
@@ -195,14 +196,13 @@ class RobotLink:
                 f"went away; the world is at tick {self._sim.tick_count})")
 
     # -- programs -------------------------------------------------------------------------------------------
-    def _watch_servo(self) -> bool:
-        """Look up the rig's servo (again when it was replaced); True when it plays motion programs."""
+    def _watch_servo(self) -> None:
+        """Look up the rig's servo (again when it was replaced): does it play motion programs?"""
         servo = self._sim.modules.get(self.rig.servo)
         if servo is not self._servo:
             self._servo = servo
             self._plays = isinstance(getattr(type(servo), "program", None), property)
             self._seen = servo.program if self._plays else None  # the program it has now is not news
-        return self._plays
 
     def _check_program(self, tick: int) -> None:
         """Send the robot the servo's program when the servo began a new one in the tick just done (a program
@@ -277,7 +277,11 @@ class RobotLink:
             self._ring_q[self._ring_at] = q
             self._ring_at = (self._ring_at + 1) % RING
             self._ring_len = min(self._ring_len + 1, RING)
-        if self._watch_servo():
+        bus = view.bus()
+        if bus is not self._bus:  # the structure changed (or the first tick): look the servo up again
+            self._bus = bus
+            self._watch_servo()
+        if self._plays:
             self._check_program(view.tick)
 
     def _predicted(self, stamp: int) -> np.ndarray | None:
