@@ -80,10 +80,10 @@ def test_a_replay_without_the_joint_kind_would_diverge(tmp_path, monkeypatch):
 
     real = v.apply_edit
 
-    def as_weld(world, kind, d, base_dir="."):
+    def as_weld(world, kind, d, *args, **kwargs):
         if kind == "make_joint":
             d = {k: x for k, x in d.items() if k not in ("kind", "axis", "anchor")}
-        return real(world, kind, d, base_dir)
+        return real(world, kind, d, *args, **kwargs)
 
     monkeypatch.setattr(v, "apply_edit", as_weld)
     result = verify(path)

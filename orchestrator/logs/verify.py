@@ -100,12 +100,11 @@ def verify(path: str | os.PathLike[str], *, allow_python: Sequence[str] = (),
     info = index.info
     if info is None:
         lib = index.header.library if index.header else ""
-        if lib.startswith("dynabrain"):
-            raise LogError(f"{path} was written by {lib!r} but lacks its `dynabrain` metadata record (the scenario, "
-                           "seed and versions of the run: lost, or never written by a run killed early), so there "
-                           "is no scenario to verify against")
-        raise LogError(f"{path} is not a dynabrain recording (written by {lib or 'an unnamed library'!r}); it "
-                       "has no scenario to verify")
+        if lib and not lib.startswith("dynabrain"):
+            raise LogError(f"{path} is not a dynabrain recording (written by {lib!r}); it has no scenario to verify")
+        raise LogError(f"{path} lacks the `dynabrain` metadata record (the run's scenario, seed and versions"
+                       f"{'; its header says dynabrain wrote it' if lib else ''}): lost before the log was recovered, "
+                       "or never written by a run killed early, so there is no scenario to verify against")
     if not info.scenario_text:
         raise LogError(f"{path} has no scenario: it records a world built in code, which --verify cannot rebuild")
     if info.start_tick != 0:
