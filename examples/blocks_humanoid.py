@@ -38,6 +38,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +47,7 @@ from humanoid_eyes import faces
 from recognised_blocks import Block
 
 from dynabrain.modules.mujoco.offscreen import RendererUnavailableError
-from dynabrain.modules.pushing import DIRECTIONS, KEYFRAMES, PushCommand
+from dynabrain.modules.pushing import KEYFRAMES, PushCommand
 from dynabrain.modules.stereo import StereoCamera
 from dynabrain.orchestrator import World, load_world
 from dynabrain.orchestrator.brain.plan import Action, Outcome, Plan, search
@@ -67,12 +68,20 @@ PLAN_AT = 1160
 """The tick the brain plans from: the kid is back in its crouch (2 s) and the added blocks have settled."""
 SETTLE_S = 0.3
 """Watched after a push's motion ends: the blocks come to rest."""
-PUSH_STEPS = 0.055
+DIRECTIONS = ("left", "right")
+"""The pushes the planner tries (`modules.pushing` also pushes away from the robot, but at this table
+the hand cannot get between the robot and a block: every such push is out of reach)."""
+PUSH_STEPS = 0.06
 """About how far a push moves a block (m): the heuristic counts the distance in pushes."""
 FALLEN_Z = 0.2
 """The pelvis below this (m): the robot fell."""
+ZMP_OUT_TICKS = 25
+"""The ZMP outside the support polygon for more ticks than this (50 ms at the brain world's 2 ms step),
+in all, during a push: the robot tips (a sample or two at the edge as the hand hits a block is not)."""
 GOAL_M = 0.03
 """The blue block's centre within this of the target's."""
+COMMAND_TICKS = 5
+"""The motion program goes to the robot every this many ticks (10 ms: 100 Hz), each command held."""
 
 
 def look(scene: World) -> list[Block]:
@@ -93,7 +102,7 @@ def brain_world(seen: list[Block], **overrides) -> World:
     return world
 
 
-def actions(world: World, names: list[str], speeds=("slow", "fast"), directions=tuple(DIRECTIONS)) -> list[Action]:
+def actions(world: World, names: list[str], speeds=("slow", "fast"), directions=DIRECTIONS) -> list[Action]:
     """One action per block, direction and speed: the hand's push, then `SETTLE_S` of rest."""
     dt_s = world.dt_ns * 1e-9
     out = []
@@ -140,8 +149,9 @@ def failed(o: Outcome) -> str | bool:
         return f"IK: the hand cannot reach the {KEYFRAMES[unreached - 1]} keyframe"
     if np.min(o.signals["core.pelvis.pos"][:, 2]) < FALLEN_Z:
         return "the robot fell"
-    if np.min(o.signals["zmp.inside"]) < 1:
-        return "the ZMP left the support polygon"
+    outside = int(np.count_nonzero(o.signals["zmp.inside"] < 1))
+    if outside > ZMP_OUT_TICKS:
+        return f"the ZMP left the support polygon (over {ZMP_OUT_TICKS} ticks)"
     for name, values in o.signals.items():
         if name.endswith(".pos") and name != "core.pelvis.pos" and np.min(values[:, 2]) < TABLE_TOP_M - 0.05:
             return f"{name.split('.')[1]} fell to the floor"
@@ -159,10 +169,13 @@ def careless(o: Outcome) -> str | bool:
 
 
 def plan(world: World, names: list[str], *, careful: bool = False, backend: str = "auto", batch=None,
-         max_expansions: int = 40, speeds=None, directions=tuple(DIRECTIONS)) -> Plan:
-    """A* over hand pushes (one push costs 1); ``careful``: slow pushes of blocks with nothing on them."""
+         max_expansions: int = 40, movers: list[str] | None = None, speeds=None,
+         directions=DIRECTIONS) -> Plan:
+    """A* over hand pushes (one push costs 1) of the blocks ``names`` (``movers``: those pushed; default
+    all); ``careful``: slow pushes of blocks with nothing on them."""
     speeds = speeds or (("slow",) if careful else ("slow", "fast"))
-    return search(world, actions(world, names, speeds, directions), record=record(names), heuristic=heuristic,
+    return search(world, actions(world, movers or names, speeds, directions), record=record(names),
+                  heuristic=heuristic,
                   goal=goal, failed=careless if careful else failed, cost=lambda o: 1.0, backend=backend,
                   batch=batch, max_expansions=max_expansions, max_depth=6)
 
@@ -193,11 +206,13 @@ class RobotLostError(Exception):
 
 
 def execute_remote(p: Plan, names: list[str], connect: str, world: str = "blocks_humanoid",
-                   check_every: int = 25) -> dict[str, np.ndarray]:
+                   every: int = COMMAND_TICKS, sent: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
     """Run the plan on the world served at ``connect`` (blocks_humanoid.yaml at t=0, with the robot rig
-    ``kid``): tick to the plan's start, then stream the motion program (the hands' joint offsets, one
-    robot command per tick, to the simulation and the robot) in lock-step. Returns the blocks' final
-    positions there. Raises `RobotLostError` when the robot goes away."""
+    ``kid``): tick to the plan's start, then stream the motion program (the hands' joint offsets for the
+    servo's q_ref) as robot commands, one every ``every`` ticks, to the simulation and the robot, in
+    lock-step (``sent``, if given, is called with the served world's tick after each command). Returns
+    the blocks' final positions there. Raises `RobotLostError` when the robot goes away (a command
+    refused, or its liveliness token gone)."""
     from dynabrain.bridge import BrainClient, WorldRefusedError
 
     client = BrainClient(world, connect=connect)
@@ -209,14 +224,16 @@ def execute_remote(p: Plan, names: list[str], connect: str, world: str = "blocks
         client.tick(PLAN_AT - tick)
         client.robot_enable(ROBOT)
         program = p.trajectory["hands.q_ref"]
-        for i, row in enumerate(program):
+        for i in range(0, len(program), every):
             try:
-                client.motion(ROBOT, row.tolist(), route="both")
+                client.motion(ROBOT, program[i].tolist(), route="both")
             except WorldRefusedError as exc:
                 raise RobotLostError(PLAN_AT + i, str(exc)) from None
-            client.tick(1)
-            if i % check_every == 0 and not client.robot_status(ROBOT)["alive"]:
-                raise RobotLostError(PLAN_AT + i + 1, "its liveliness token is gone")
+            client.tick(min(every, len(program) - i))
+            if sent is not None:
+                sent(PLAN_AT + i + every)
+            if not client.robot_status(ROBOT)["alive"]:
+                raise RobotLostError(PLAN_AT + i + every, "its liveliness token is gone")
         return {b: np.asarray(client.get(f"core.{b}.pos")) for b in names}
     finally:
         client.close()

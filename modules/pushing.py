@@ -55,10 +55,11 @@ from .whole_body import WholeBody
 DIRECTIONS = {"left": (0.0, 1.0), "right": (0.0, -1.0), "away": (1.0, 0.0)}
 """Push directions in the world frame (x forward from the robot, y to its left)."""
 SPEEDS = ("slow", "fast")
-PUSH_M = 0.06
+PUSH_M = 0.075
 """How far the hand's tip travels in the push keyframe."""
-STANDOFF_M = 0.024
-"""The tip's distance from the block's face before the push (about the hand's half width, and a little)."""
+STANDOFF_M = 0.036
+"""The tip's distance from the block's face before the push: the hand's half width (2 cm) and 16 mm to spare
+(a hand lowered onto the block's edge instead of beside it lands on it, and the robot tips over)."""
 TIP_ABOVE_BOTTOM_M = 0.008
 """The tip's height over the pushed block's bottom: low on its side, clear of what is under it."""
 CLEAR_M = 0.06
