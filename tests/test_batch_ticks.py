@@ -29,6 +29,18 @@ def slider():
     world.close()
 
 
+@pytest.fixture(scope="module")
+def processes(slider):
+    """Two worker processes for the slider, shared by this file's tests (one kills a worker: the pool
+    replaces it)."""
+    with Batch(slider, backend="processes", workers=2) as batch:
+        yield batch
+
+
+def batch_of(slider, processes, backend: str) -> Batch:
+    return processes if backend == "processes" else Batch(slider, backend=backend, workers=2)
+
+
 def forces(b: int, ticks: int) -> np.ndarray:
     return np.linspace(-3.0 + 2.0 * b, 6.0 - b, ticks)
 
@@ -44,15 +56,15 @@ def alone(world, start: bytes, ticks: int, force: np.ndarray) -> tuple[dict[str,
         twin.close()
 
 
-def check_ragged(world, backend: str, **options) -> None:
+def check_ragged(world, batch: Batch) -> None:
     first = world.export_state()
     world.tick(3)
     second = world.export_state()
     world.backtick(3)
     starts = [first, second, first, second]
     inputs = [forces(b, t) for b, t in enumerate(LENGTHS)]
-    with Batch(world, backend=backend, **options) as batch:
-        result = batch.run(LENGTHS, starts=starts, inputs={"core.s.force": inputs}, record=RECORD)
+    result = batch.run(LENGTHS, starts=starts, inputs={"core.s.force": inputs}, record=RECORD)
+    backend = batch.backend
     assert result.ok and result.ticks == max(LENGTHS) and result.branch_ticks == LENGTHS
     for b, ticks in enumerate(LENGTHS):
         ref, final = alone(world, starts[b], ticks, inputs[b])
@@ -64,8 +76,11 @@ def check_ragged(world, backend: str, **options) -> None:
 
 
 @pytest.mark.parametrize("backend", ["serial", "processes", "threads"])
-def test_branches_of_different_lengths_each_equal_the_branch_alone(slider, backend):
-    check_ragged(slider, backend, workers=2)
+def test_branches_of_different_lengths_each_equal_the_branch_alone(slider, processes, backend):
+    batch = batch_of(slider, processes, backend)
+    check_ragged(slider, batch)
+    if batch is not processes:
+        batch.close()
 
 
 def test_branches_of_different_lengths_on_ray(slider):
@@ -75,7 +90,8 @@ def test_branches_of_different_lengths_on_ray(slider):
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False,
                  _node_ip_address="127.0.0.1")
     try:
-        check_ragged(slider, "ray", workers=2)
+        with Batch(slider, backend="ray", workers=2) as batch:
+            check_ragged(slider, batch)
     finally:
         if mine:
             ray.shutdown()
@@ -95,17 +111,27 @@ def test_tick_counts_and_inputs_that_do_not_fit_are_refused(slider):
         assert wide.branch("core.s.force", 0).tolist() == [1.0, 1.0]  # a branch takes the rows it runs
 
 
-def test_a_submitted_batch_runs_while_the_world_goes_on(slider):
+@pytest.mark.parametrize("backend", ["serial", "processes"])
+def test_a_submitted_batch_runs_while_the_world_goes_on(slider, processes, backend):
     start = slider.export_state()
     inputs = {"core.s.force": [forces(b, t) for b, t in enumerate(LENGTHS)]}
-    with Batch(slider, backend="serial") as batch:
-        future = batch.submit(LENGTHS, starts=[start] * 4, inputs=inputs, record=RECORD)
-        slider.tick(20)  # the controller goes on; the batch read the world when it was submitted
-        later = batch.run(LENGTHS, starts=[start] * 4, inputs=inputs, record=RECORD)  # after the submitted one
-        result = future.result(timeout=60)
-        slider.import_state(start)
-    for name in RECORD:
-        assert result.signals[name].tobytes() == later.signals[name].tobytes()
+    batch = batch_of(slider, processes, backend)
+    future = batch.submit(LENGTHS, inputs=inputs, record=RECORD)  # from the world now
+    slider.tick(20)  # the controller goes on; the batch read the world when it was submitted
+    later = batch.run(LENGTHS, starts=[start] * 4, inputs=inputs, record=RECORD)  # after the submitted one
+    result = future.result(timeout=60)
+    if batch is not processes:
+        batch.close()
+    slider.import_state(start)
+    for b, ticks in enumerate(LENGTHS):
+        ref, final = alone(slider, start, ticks, inputs["core.s.force"][b])
+        assert same_state(result.states[b], final), b
+        for name in RECORD:
+            assert result.branch(name, b).tobytes() == ref[name].tobytes()
+            assert later.branch(name, b).tobytes() == ref[name].tobytes()
+
+
+def test_a_submitted_batch_fails_as_run_would(slider):
     with Batch(slider, backend="serial") as batch:
         bad = batch.submit(5, branches=1, inputs={"core.s.force": np.full(5, 1e300)}, record=RECORD)
         assert not bad.result(timeout=60).ok  # a failed branch is a value in the future too
@@ -132,16 +158,17 @@ def test_one_sequence_broadcast_to_several_ports():
         world.close()
 
 
-def test_a_dead_worker_s_branch_is_lost_not_failed(slider):
+def test_a_dead_worker_s_branch_is_lost_not_failed(processes):
     """A worker killed between two batches: the branch handed to it first is marked lost (its worker
     died; the branch may well be fine), with the cause; the pool replaces the worker."""
-    with Batch(slider, backend="processes", workers=2) as batch:
-        assert batch.run(5, branches=2).ok
-        victim = batch._pool._workers[0].proc
-        os.kill(victim.pid, signal.SIGKILL)
-        victim.wait()
-        result = batch.run(5, branches=4, record=RECORD)
-        lost = [s for s in result.status if s.lost]
-        assert len(lost) == 1 and not lost[0].ok and "SIGKILL" in lost[0].reason
-        assert all(s.ok for s in result.status if not s.lost)
-        assert batch.run(5, branches=4).ok and batch._pool.replaced == 1
+    batch = processes
+    assert batch.run(5, branches=2).ok
+    replaced = batch._pool.replaced
+    victim = batch._pool._workers[0].proc
+    os.kill(victim.pid, signal.SIGKILL)
+    victim.wait()
+    result = batch.run(5, branches=4, record=RECORD)
+    lost = [s for s in result.status if s.lost]
+    assert len(lost) == 1 and not lost[0].ok and "SIGKILL" in lost[0].reason
+    assert all(s.ok for s in result.status if not s.lost)
+    assert batch.run(5, branches=4).ok and batch._pool.replaced == replaced + 1
