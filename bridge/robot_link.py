@@ -45,6 +45,9 @@ from .zenoh_io import FRAME
 
 RING = 2048
 """Ticks of prediction kept for shadow comparisons (4 s at a 2 ms step)."""
+ANSWER_NS = 1_000_000_000
+"""How long the link waits for the robot's answer to an enable (on ``status``) before it goes by the
+robot's last word again; a robot that answers ends the wait at once."""
 
 
 
@@ -152,7 +155,7 @@ class RobotLink:
             mode, reason, enable_ns, answer_ns = self.mode, self.reason, self._enable_ns, self._answer_ns
         if mode in (None, "enabled"):
             return None
-        if enable_ns is not None and answer_ns < enable_ns and time.time_ns() - enable_ns < self.enable_window_ns:
+        if enable_ns is not None and answer_ns < enable_ns and time.time_ns() - enable_ns < ANSWER_NS:
             return None  # our enable is on its way and the robot has not answered it yet
         return (f"robot {self.name!r} is {mode.replace('_', ' ')}"
                 + (f" ({reason})" if reason else "") + ": it ignores moves and programs until robot_enable")
