@@ -13,13 +13,14 @@ import os
 from pathlib import Path
 
 import gymnasium
+import mujoco
 import numpy as np
 import pytest
 
 from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.modules.sensors import Encoders
 from dynabrain.orchestrator.kernel.core import SceneSpec
-from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.errors import DynabrainError, ScenarioError
 from dynabrain.orchestrator.kernel.world import World
 from dynabrain.orchestrator.scenario.model import load_scenario
 
@@ -211,4 +212,59 @@ def test_encoders_read_an_animated_robot_and_refuse_a_frozen_objects_joint():
     assert w.get("enc.q").shape == (2,)
     with pytest.raises(DynabrainError, match=r"module 'spare' \[targets\]: joint 'spare_l' belongs to a frozen object"):
         w.add_module(Encoders("spare", targets=["spare_l"]))
+    w.close()
+
+
+# -- a model's own options -------------------------------------------------------------------------------------------
+def opt(w: World) -> tuple[str, str, str, int, float]:
+    o = w.core.mj.model.opt
+    return (mujoco.mjtIntegrator(o.integrator).name, mujoco.mjtCone(o.cone).name, mujoco.mjtSolver(o.solver).name,
+            int(o.iterations), float(o.timestep))
+
+
+def test_a_model_files_own_options_are_kept_unless_the_scene_overrides_them():
+    w = arm_world()  # the file: RK4, pyramidal cones, CG, 30 iterations, 1 ms
+    assert opt(w) == ("mjINT_RK4", "mjCONE_PYRAMIDAL", "mjSOL_CG", 30, 0.001) and w.core.params["substeps"] == 2
+    w.tick(5)
+    w.make(["box"])  # every structure keeps them
+    assert opt(w) == ("mjINT_RK4", "mjCONE_PYRAMIDAL", "mjSOL_CG", 30, 0.001)
+    w.close()
+    w = World("o", step="2ms", core=MujocoCore("core", SceneSpec(model=str(ARM), options={
+        "integrator": "implicitfast", "iterations": 12, "timestep": 0.0005})))
+    assert opt(w) == ("mjINT_IMPLICITFAST", "mjCONE_PYRAMIDAL", "mjSOL_CG", 12, 0.0005)
+    w.close()
+    w = arm_world(substeps=1)  # substeps given: they rule the timestep
+    assert opt(w)[4] == 0.002
+    w.close()
+    w = World("kid", step="2ms", core=MujocoCore("core", SceneSpec(model=str(KID))))  # a file that says nothing
+    assert opt(w) == ("mjINT_IMPLICITFAST", "mjCONE_ELLIPTIC", "mjSOL_NEWTON", 100, 0.002)
+    w.close()
+
+
+SCENE_OPTIONS = """\
+name: options
+world: {{step: 2ms, duration: 10ms, core: mujoco}}
+scene:
+  model: {model}
+  options:
+    integrater: euler
+    solver: cg
+    iterations: 1.5
+    timestep: 0.5ms
+"""
+
+
+def test_scene_options_override_the_file_and_unknown_ones_are_refused_with_file_line_and_field(tmp_path):
+    (tmp_path / "o.yaml").write_text(SCENE_OPTIONS.format(model=ARM))
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(tmp_path / "o.yaml").build()
+    text = str(err.value)
+    assert "o.yaml:6 [scene.options.integrater]: MuJoCo has no option 'integrater' (did you mean 'integrator'?)" in text
+    assert "o.yaml:8 [scene.options.iterations]: option iterations: a whole number" in text
+    assert "2 problems" in text  # the solver and the timestep are good
+    (tmp_path / "o.yaml").write_text(SCENE_OPTIONS.format(model=ARM).replace("    integrater: euler\n", "")
+                                     .replace("iterations: 1.5", "iterations: 15"))
+    w = load_scenario(tmp_path / "o.yaml").build()
+    assert opt(w) == ("mjINT_RK4", "mjCONE_PYRAMIDAL", "mjSOL_CG", 15, 0.0005)
+    w.tick(5)
     w.close()

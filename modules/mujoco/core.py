@@ -6,7 +6,10 @@ Choices (see also `mujoco.scene`):
   implicitly, so damped joints and stiff drives stay stable at the world's step, at the cost of an
   explicit step (no Coriolis derivatives); elliptic friction cones with the Newton solver (MuJoCo's
   most accurate friction model); automatic reset on bad numbers is off, so a divergence stays visible
-  and `step` raises `PhysicsDivergedError` instead of silently restarting the model;
+  and `step` raises `PhysicsDivergedError` instead of silently restarting the model. A model file's own
+  ``<option>`` (timestep, integrator, cone, solver, iterations ...) is kept, and the scene's ``options``
+  override both (`mujoco.options`); a timestep of its own sets the substeps (unless ``substeps`` is given):
+  MuJoCo steps at it when it divides the world's step;
 - the data is kept "after `mj_step1`": a step is `mj_step2` (inputs already in place), more full steps
   for the substeps, then `mj_step1`, so positions, velocities and sensors of the new state are current
   for the outputs at no extra cost;
@@ -45,6 +48,8 @@ Choices (see also `mujoco.scene`):
 - a fork (`World.fork`, a deep copy) copies only the MuJoCo data of the current structure, into data a
   closed fork left when there is some; the compiled model is shared until either core changes a
   run-time parameter, which copies it first (`ModelShare`, `CompiledScene.own_model`);
+- a robot (an object whose joints actuators drive) that `make` leaves out is animated, not frozen: it
+  keeps its joints and follows its input ``joint_target`` kinematically (`mujoco.animate`);
 - modules that need MuJoCo's own model and data (native sensors, contacts) read them through
   `MujocoCore.mj` (a `MujocoView`), through `mujoco.access.MujocoLink`;
 - MuJoCo's warnings go to the ``dynabrain.mujoco`` log, the first of each kind only, the rest counted
@@ -79,6 +84,7 @@ from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDiverged
 from dynabrain.orchestrator.kernel.module import Capabilities, Param, Port, SetupContext
 
 from . import animate, warning_log
+from . import options as mo
 from . import scene as ms
 
 warning_log.install()  # MuJoCo's warnings to the log, each kind once, counted (no MUJOCO_LOG.TXT)
@@ -377,12 +383,16 @@ class MujocoCore(EditedCore):
     )
 
     MADE_JOINTS = ("weld", "hinge", "slider", "ball")
+    option_problem = staticmethod(mo.option_problem)
+    """What is wrong with a scene option (`SceneSpec.options`, MuJoCo's ``<option>``), or None: the scenario
+    reports it with its line."""
 
     def __init__(self, name: str, scene: SceneSpec, *, scenario_dir: str | None = None, **params: Any):
         super().__init__(name, scene, **params)
         for key, value in self._param_values.items():
             self._check_param(key, value)
         self._period = DEFAULT_PERIOD_S
+        self._substeps_given = "substeps" in params  # else a model file's own timestep sets them (`setup`)
         self._source = ms.SpecSource(name, scene, scenario_dir)
         self._scenes: dict[tuple, SceneView] = {}  # scene key -> its layout and ports (never dropped: see bind)
         self._by_ports: dict[frozenset[str], SceneView] = {}  # the same, by the names of its outputs
@@ -497,6 +507,14 @@ class MujocoCore(EditedCore):
     # -- lifecycle --------------------------------------------------------------------------------------------
     def setup(self, ctx: SetupContext) -> None:
         self._period = ctx.period_ns * 1e-9
+        own = self._source.timestep_s  # a model file's own timestep, or the scene options': MuJoCo steps at it
+        if own is not None and not self._substeps_given:
+            try:
+                substeps = mo.substeps_for(self._period, own)
+            except ValueError as exc:
+                raise ms.fail(self.name, f"scene, field options: {exc}") from None
+            if substeps != self._param_values["substeps"]:
+                self.set_param("substeps", substeps, running=False)
         self._apply_params(self._compiled)
         mujoco.mj_forward(self._compiled.model, self._compiled.data)
 

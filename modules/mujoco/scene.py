@@ -44,7 +44,7 @@ from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.portable import state_type
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
 
-from . import animate, refs
+from . import animate, options, refs
 
 ENGINE = "mujoco"
 IMPEDANCE = 0.99
@@ -67,12 +67,6 @@ _GEOM_NAMES = {int(v): k for k, v in _GEOMS.items()} | {
 MESH_PREFIX = "__dynabrain_mesh_"
 """Name prefix of the mesh asset of a ``mesh`` body (its geom is named as the body)."""
 _JOINTS = {"hinge": mujoco.mjtJoint.mjJNT_HINGE, "slide": mujoco.mjtJoint.mjJNT_SLIDE}
-_OPTIONS = {
-    "integrator": ("integrator", mujoco.mjtIntegrator, "mjINT_"),
-    "cone": ("cone", mujoco.mjtCone, "mjCONE_"),
-    "solver": ("solver", mujoco.mjtSolver, "mjSOL_"),
-}
-_NUMERIC_OPTIONS = {"iterations": int, "tolerance": float, "impratio": float, "noslip_iterations": int}
 VEL_PREFIX = "__dynabrain_vel_"
 """Name prefix of the velocity sensors the core adds to read body velocities in one step."""
 
@@ -164,10 +158,14 @@ class SpecSource:
         if scene.model and scene.bodies:
             raise fail(core, "a scene has either a model file or bodies, not both")
         self.core, self.scene = core, scene
-        self.base = _finish(core, _spec_from_file(core, scene.model, scenario_dir), scene) if scene.model else None
+        path = _model_path(core, scene.model, scenario_dir) if scene.model else None
+        own = options.declared(path) if path else frozenset()  # the options the file sets itself: kept
+        self.base = _finish(core, _spec_from_file(core, path), scene, own=own) if path else None
         self.geom_body = _geom_owners(self.base) if self.base is not None else {}
         """Geom name -> the body it belongs to, for the model file's geoms (a primitive's geom is
         named as its body)."""
+        self.timestep_s = options.own_timestep(self.base, scene.options or {}, own)
+        """The timestep the scene asks for (its options', or a model file's own), or None (`mujoco.options`)."""
         self.base_size = _spec_size(self.base) if self.base is not None else ModelSize()
         """The model file's size (nothing for a primitive scene: its bodies say)."""
         _check_bodies(core, self.base_size.nbody + len(scene.bodies))
@@ -224,10 +222,15 @@ class SpecSource:
         return size + ModelSize(nbody=sliders, nv=sliders, neq=2 * len(edits.welds))
 
 
-def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec, *, named: bool = False) -> mujoco.MjSpec:
-    """Options, names and no fusing; ``named``: the spec names everything already (a primitive scene:
-    MuJoCo's lists of every joint and geom cost time quadratic in their number)."""
-    _apply_options(core, spec, scene.options or {})
+def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec, *, named: bool = False,
+            own: frozenset[str] = frozenset()) -> mujoco.MjSpec:
+    """Options (``own``: those a model file sets itself, `mujoco.options.declared`), names and no fusing;
+    ``named``: the spec names everything already (a primitive scene: MuJoCo's lists of every joint and
+    geom cost time quadratic in their number)."""
+    try:
+        options.apply(spec, scene.options or {}, own=own)
+    except ValueError as exc:
+        raise fail(core, f"scene, field options: {exc}") from None
     if not named:
         _name_everything(spec)
         for body in spec.bodies:
@@ -236,10 +239,14 @@ def _finish(core: str, spec: mujoco.MjSpec, scene: SceneSpec, *, named: bool = F
     return spec
 
 
-def _spec_from_file(core: str, path: str, scenario_dir: str | None) -> mujoco.MjSpec:
+def _model_path(core: str, path: str, scenario_dir: str | None) -> str:
     full = path if os.path.isabs(path) or scenario_dir is None else os.path.join(scenario_dir, path)
     if not os.path.isfile(full):
         raise fail(core, f"model file {full!r} not found")
+    return full
+
+
+def _spec_from_file(core: str, full: str) -> mujoco.MjSpec:
     try:
         return mujoco.MjSpec.from_file(full)
     except Exception as exc:  # mujoco raises ValueError with the parser's message
@@ -351,25 +358,6 @@ def _add_joint(core: str, body: mujoco.MjsBody, b: BodySpec, frozen: bool, degre
         joint.limited = mujoco.mjtLimited.mjLIMITED_TRUE
         scale = 180.0 / np.pi if degree and kind == "hinge" else 1.0  # a model file's spec may be in degrees
         joint.range = [float(j.range[0]) * scale, float(j.range[1]) * scale]
-
-
-def _apply_options(core: str, spec: mujoco.MjSpec, options: dict) -> None:
-    """Defaults: implicitfast integrator, elliptic cones, Newton solver, no automatic reset."""
-    opt = spec.option
-    opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-    opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
-    opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
-    opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
-    opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_SLEEP)  # sleep state is not in mjSTATE_INTEGRATION
-    for key, value in options.items():
-        if key in _OPTIONS:
-            attr, enum, prefix = _OPTIONS[key]
-            members = {n[len(prefix):].lower(): v for n, v in enum.__members__.items()}
-            if str(value).lower() not in members:
-                raise fail(core, f"option {key}: unknown value {value!r} (one of {', '.join(members)})")
-            setattr(opt, attr, members[str(value).lower()])
-        elif key in _NUMERIC_OPTIONS:
-            setattr(opt, key, _NUMERIC_OPTIONS[key](value))
 
 
 def _geom_owners(spec: mujoco.MjSpec) -> dict[str, str]:
@@ -708,7 +696,7 @@ def _tiny() -> tuple[mujoco.MjModel, mujoco.MjData]:
     """A sphere of radius 0.1 on a slide joint over a plane, with the core's contact options."""
     if not _TINY:
         spec = mujoco.MjSpec()
-        _apply_options("calibration", spec, {})
+        options.apply(spec, {})
         spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1])
         ball = spec.worldbody.add_body(name="ball")
         ball.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.1, 0, 0], mass=1.0)

@@ -29,6 +29,7 @@ from ..kernel.bodies import parse_color
 from ..kernel.core import COLORS, FLEX_SHAPES, JOINT_KINDS, SHAPES, BodySpec, CableSpec, JointSpec, SceneSpec
 from ..kernel.errors import DynabrainError, Problem, UnitError
 from ..kernel.meshes import parse_mesh
+from ..kernel.plugins import resolve_core
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import parse_quantity
 from ..kernel.yamlsrc import Path, YamlSource
@@ -49,10 +50,11 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
     """A SceneSpec and the problems found (every one, with its line)."""
     problems: list[Problem] = []
     if isinstance(data, dict):
-        unknown = [k for k in data if k != "model"]
+        unknown = [k for k in data if k not in ("model", "options")]
         for key in unknown:
             problems.append(src.problem(("scene", key), f"unknown key {key!r} in scene; a scene is a list of "
-                                        "primitives or {model: file}" + did_you_mean(key, ["model"])))
+                                        "primitives or {model: file, options: {...}}"
+                                        + did_you_mean(key, ["model", "options"])))
         model = data.get("model")
         if not isinstance(model, str):
             problems.append(src.problem(("scene",), "scene.model must be a file path"))
@@ -65,7 +67,7 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
                 count_bodies(path)
             except ModelFileError as exc:
                 problems.append(src.problem(("scene", "model"), f"{model}: {exc}"))
-        return SceneSpec(model=path), problems
+        return SceneSpec(model=path, options=_options(data.get("options"), src, engine, problems)), problems
     if data is not None and not isinstance(data, list):
         problems.append(src.problem(("scene",), f"a scene is a list of shapes or {{model: file}}, got {short(data)}"))
         return SceneSpec(), problems
@@ -100,6 +102,35 @@ def parse_scene(data: Any, src: YamlSource, base_dir: str, engine: str) -> tuple
                                         + did_you_mean(end, names) + "; use a body's name, world or null",
                                         src.file, body.line, f"scene[{i}].attach"))
     return SceneSpec(bodies=tuple(bodies)), problems
+
+
+def _options(data: Any, src: YamlSource, engine: str, problems: list[Problem]) -> dict[str, Any]:
+    """``scene: {model: file, options: {...}}``: the engine's physics options, which override the model
+    file's own (MuJoCo's ``<option>``: timestep, integrator, cone, solver, iterations ...). Each is checked
+    by the core's ``option_problem`` when it has one; a bad one is reported with its line and left out.
+    ``timestep`` takes a unit (``1ms``)."""
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        problems.append(src.problem(("scene", "options"), f"options are a mapping of option: value, got {short(data)}"))
+        return {}
+    try:
+        check = getattr(resolve_core(engine), "option_problem", None)
+    except DynabrainError:
+        check = None  # (an unknown core is reported at world.core)
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        try:
+            value = parse_quantity(value, "time") if key == "timestep" and isinstance(value, str) else value
+        except (UnitError, ValueError) as exc:
+            problems.append(src.problem(("scene", "options", key), f"option timestep: {exc}"))
+            continue
+        problem = check(key, value) if check is not None else None
+        if problem:
+            problems.append(src.problem(("scene", "options", key), problem))
+            continue
+        out[key] = value
+    return out
 
 
 def _items(data: list[Any], src: YamlSource, problems: list[Problem]):
