@@ -206,7 +206,7 @@ class Mpc:
                 raise MpcError(f"mpc: controls[{ch!r}] drives no port")
             for port in ports:
                 try:
-                    target = self.world.settable(port)
+                    target = self._port(port)
                 except DynabrainError as exc:
                     raise MpcError(f"mpc: controls[{ch!r}]: {exc}") from None
                 if not isinstance(target, str):
@@ -229,6 +229,21 @@ class Mpc:
             if not (isinstance(bounds, (tuple, list)) and len(bounds) == 2 and all(_finite(b) for b in bounds)
                     and bounds[0] <= bounds[1]):
                 raise MpcError(f"mpc: randomize[{name!r}] is {bounds!r}; give (low, high)")
+
+    def _port(self, port: str) -> str | tuple:
+        """A controlled port's full name (an unconnected input, or one the player drives already: a
+        second controller on the same world and channels)."""
+        player = self.world.modules.get(self.player)
+        if player is None:
+            return self.world.settable(port)
+        if type(player).__name__ != "PlanPlayer" or player.params["channels"] != ",".join(self.channels):
+            raise MpcError(f"mpc: the world has a module {self.player!r} that is not this controller's player "
+                           f"(channels {','.join(self.channels)}); name another with player=")
+        self.world.signal_shape(port)
+        for conn in self.world.connections:
+            if conn.dst == port and conn.src.startswith(f"{self.player}."):
+                return conn.dst
+        return self.world.settable(port)
 
     def _held(self) -> np.ndarray:
         """The controlled ports' values now (the first of each channel's ports)."""
