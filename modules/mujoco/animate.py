@@ -22,8 +22,10 @@ fixed tendon: `driven_joints`). How the MuJoCo core does it:
 - its free bodies' inputs (``wrench``, ``velocity``) are ignored, as a frozen body's are;
 - selecting it again simulates it from where it is, at the velocity it moves with.
 
-It costs what simulating the robot costs (its degrees of freedom are still in MuJoCo's step), not less:
-what it saves is the robot's behaviour (it cannot fall, and follows its program exactly).
+Its degrees of freedom are still in MuJoCo's step, so it costs about what simulating the robot costs,
+less its contacts and limits (the kid with no servo, a ball beside it: 17 us a tick animated, 31 us
+simulated, at a load of 9 on 2 cores); what it saves is the robot's behaviour (it cannot fall, and it
+follows its program exactly).
 """
 
 from __future__ import annotations
