@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from dynabrain.modules.motion import Motion
+from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.world import World
 
 from .calls import Rig
@@ -52,10 +53,14 @@ class ProgramPlayer:
         self.word = {"seq": seq, "state": "playing", **program.describe(), "reason": None}
         if self.by_servo:
             refusal = self._refusal(program)
+            if refusal is None:
+                try:
+                    self._world.set(f"{self._rig.servo}.sequence", self._steps(program))
+                except DynabrainError as exc:  # its servo refuses the steps: the robot goes on as it was
+                    refusal = f"its servo {self._rig.servo!r} refused the steps: {exc}"
             if refusal is not None:
                 self.end("refused", refusal)
                 return
-            self._world.set(f"{self._rig.servo}.sequence", self._steps(program))
         else:
             poses = np.vstack([target, program.poses])
             self._motion = Motion(program.times_ns(), poses, loop=program.loop, smooth=program.smooth)
