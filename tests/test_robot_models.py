@@ -156,6 +156,28 @@ def test_an_animated_robot_ignores_its_free_body_inputs_and_cannot_be_placed():
     w.close()
 
 
+def test_an_animated_robot_keeps_the_joints_made_at_run_time_and_carries_what_is_welded_to_it():
+    w = arm_world()
+    w.make_joint("palm", "fore", kind="weld")  # within the robot
+    w.tick(2)
+    w.make(["box"])
+    w.make_joint("palm", "box", kind="weld")   # the box held in the hand
+    assert w.core.mj.model.neq == 2
+
+    def in_palm() -> np.ndarray:  # the box's position in the palm's frame
+        inverse, out = np.empty(4), np.empty(3)
+        mujoco.mju_negQuat(inverse, w.get("palm.quat"))
+        mujoco.mju_rotVecQuat(out, w.get("box.pos") - w.get("palm.pos"), inverse)
+        return out
+
+    palm0, held = w.get("palm.pos").copy(), in_palm()
+    for k in range(1, 101):
+        w.set("core.shoulder.target", -0.3 * k / 100)
+        w.tick(1)
+    assert np.linalg.norm(w.get("palm.pos") - palm0) > 0.1 and np.allclose(in_palm(), held, atol=0.01)
+    w.close()
+
+
 ANIMATED = """\
 name: animated
 world: {{step: 2ms, duration: 0.6s, core: mujoco, history: 50}}

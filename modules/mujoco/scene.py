@@ -499,8 +499,8 @@ def build_structure(core: str, source: SpecSource, edits: Edits) -> tuple[mujoco
         refs.prune(core, spec, removed)
     gone = {b.name for e in edits.frozen if e.object in absent for b in e.bodies}
     welds = tuple(w for w in edits.welds if w.a not in gone)  # (both sides are absent, or neither: `make`)
-    anchors = _made_joints(spec, welds)
-    animate.make_kinematic(spec, [e for e in edits.frozen if e.animated and e.object not in absent])
+    animate.make_kinematic(spec, [e for e in edits.frozen if e.animated and e.object not in absent])  # (before the
+    anchors = _made_joints(spec, welds)  # joints made at run time: those it holds stay)
     groups = tuple(g for g in (tuple(n for n in grp if n not in gone) for grp in edits.groups) if len(g) > 1)
     for pair in _exclusions(spec, groups):
         spec.add_exclude(bodyname1=pair[0], bodyname2=pair[1])
