@@ -316,7 +316,7 @@ class Batch:
                 np.ndim(v) == len(shape) + 1 for v in values):  # one array per branch
             arrays = [np.asarray(v, dtype=np.float64) for v in values]
             for b, (arr, ticks) in enumerate(zip(arrays, lengths, strict=True)):
-                if arr.shape[1:] != shape or len(arr) < ticks:
+                if arr.shape[1:] != shape or len(arr) < ticks or (not ragged and len(arr) != ticks):
                     raise WiringError(f"batch: the values for input {full} of branch {b} have shape {arr.shape}; a "
                                       f"port of shape {shape} over {ticks} ticks needs {(ticks, *shape)}")
             return [arr[:ticks] for arr, ticks in zip(arrays, lengths, strict=True)]
@@ -392,7 +392,7 @@ class Batch:
 def _tick_counts(ticks: Any) -> list[int] | None:
     """One tick count per branch when ``ticks`` is a sequence, None when it is one count for all;
     either checked (positive integers)."""
-    many = isinstance(ticks, (Sequence, np.ndarray)) and not isinstance(ticks, (str, bytes))
+    many = isinstance(ticks, (list, tuple, range, np.ndarray)) and np.ndim(ticks) == 1
     for t in ticks if many else [ticks]:
         if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < 1:
             raise DynabrainError(f"batch: ticks must be a positive integer (or one per branch), got {t!r}")
