@@ -234,6 +234,9 @@ def test_encoders_read_an_animated_robot_and_refuse_a_frozen_objects_joint():
     assert w.get("enc.q").shape == (2,)
     with pytest.raises(DynabrainError, match=r"module 'spare' \[targets\]: joint 'spare_l' belongs to a frozen object"):
         w.add_module(Encoders("spare", targets=["spare_l"]))
+    w.make(["base", "box"], others="absent")
+    with pytest.raises(DynabrainError, match=r"joint 'spare_l' belongs to a frozen or absent object \(not in the"):
+        w.add_module(Encoders("spare", targets=["spare_l"]))
     w.close()
 
 

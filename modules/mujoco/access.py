@@ -114,10 +114,12 @@ class MujocoLink:
         return i
 
     def _refuse_frozen(self, kind: str, name: str, field: str | None) -> None:
-        """A body or joint of the scene missing from the compiled model is frozen: say so."""
+        """A body or joint of the scene missing from the compiled model is frozen or absent: say so (a robot
+        left out is animated, and keeps its joints: `mujoco.animate`)."""
         scene = self.core.bodies() if kind == "body" else self.core.joints() if kind == "joint" else []
         if name in scene:
-            raise self.fail(f"{kind} {name!r} belongs to a frozen object (not in the selection): select it "
+            what = "a frozen or absent object" if self.core.absent else "a frozen object"
+            raise self.fail(f"{kind} {name!r} belongs to {what} (not in the selection): select it "
                             "(make) before this module reads it", field)
 
     def native_sensor(self, site: str, kind: mujoco.mjtSensor, tag: str, field: str | None = None) -> np.ndarray:
