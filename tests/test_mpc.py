@@ -139,3 +139,24 @@ def test_bad_controls_are_refused_before_anything_runs(seated):
     with pytest.raises(MpcError, match=r"horizon is '1 parsec'"):
         Mpc(seated, legs(), swing_energy, horizon="1 parsec", backend="serial")
     assert "mpc" not in seated.modules  # nothing was added
+
+
+def test_mpc_of_a_world_served_over_zenoh():
+    from dynabrain.bridge.mpc import RemoteMpc
+    from dynabrain.bridge.testing import serving
+
+    world = load_world(SWING)
+    world.tick(250)
+    with serving(world, "swing_mpc") as (server, brain):
+        brain.acquire()
+        mpc = RemoteMpc(brain, legs(), swing_energy, record=PIVOT, horizon="0.2s", knots=2, samples=4,
+                        method="sampling")
+        stats = mpc.run(duration=100, every="100ms")
+        assert stats.replans == 2 and server.world.tick_count == 350
+        assert "mpc" in server.world.modules and len(server.world.get("mpc.plan")) == 100
+        assert [tick for tick, _ in mpc.futures] == [250, 300]
+        # the served world played the future the brain chose: 50 ticks into it, where it predicted, bit for bit
+        predicted = mpc.futures[-1][1]["core.swing_pivot.q"][49]
+        assert np.asarray(server.world.get("core.swing_pivot.q")).tobytes() == np.asarray(predicted).tobytes()
+        with pytest.raises(MpcError, match=r"controls\['hip'\]"):
+            RemoteMpc(brain, {"hip": Control(["servo.nothing.q_ref"], -1, 0)}, swing_energy)

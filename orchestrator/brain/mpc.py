@@ -157,8 +157,8 @@ class Mpc:
                  aggregate: str = "mean", cvar: float = 0.25, batch: Batch | None = None, backend: str = "auto",
                  player: str = "mpc", seed: int = 0, name: str = "mpc"):
         self.world = world
-        self.dt = world.dt_ns * 1e-9
-        self.horizon = _ticks(world, horizon, "horizon")
+        self.dt = self._step_s()
+        self.horizon = _ticks(self.dt, horizon, "horizon")
         _check_options(knots, samples, method, iterations, elite, temperature, draws, aggregate, cvar, self.horizon)
         self.controls = dict(controls)
         self.channels = list(self.controls)
@@ -178,14 +178,37 @@ class Mpc:
         self._attach()
         self.mean = np.tile(np.clip(self._held(), self.low, self.high), (self.knots, 1))
         self.std = np.tile(self.noise, (self.knots, 1))
-        self._plan_start_tick = world.tick_count
+        self._plan_start_tick = self._now()
         self._plan_values = np.tile(self.mean[0], (self.horizon, 1))
         self._own_batch = batch is None
-        self.batch = batch or Batch(world, backend=backend)
+        self.batch = batch if batch is not None else self._make_batch(backend)
         self.stats = MpcStats()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._error: BaseException | None = None
+
+    # -- the world: where the futures start and run, where the plan plays (`bridge.mpc` serves the same
+    # -- controller a world over the bridge by overriding these) ------------------------------------------
+    def _step_s(self) -> float:
+        return self.world.dt_ns * 1e-9
+
+    def _now(self) -> int:
+        return self.world.tick_count
+
+    def _make_batch(self, backend: str) -> Any:
+        return Batch(self.world, backend=backend)
+
+    def _latest(self) -> tuple[Any, int]:
+        """The world's latest state (what `_futures` starts from) and its tick."""
+        with self.world.lock():
+            return self.world.export_state(), self.world.tick_count
+
+    def _futures(self, start: Any, ticks: int, branches: int,
+                 params: dict[str, Any]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Run ``branches`` futures from ``start``; (recorded signals, which branches ran to the end)."""
+        result = self.batch.run(ticks, branches=branches, starts=start, params=params, record=self.record,
+                                keep_states=False)
+        return result.signals, np.array([s.ok for s in result.status])
 
     # -- set-up -------------------------------------------------------------------------------------------
     def _check_world(self) -> None:
@@ -289,8 +312,7 @@ class Mpc:
         ``prefix`` (the rows the world will play meanwhile; default the current plan's), then the
         samples. Updates the controller's plan (not the world's: see `apply`)."""
         t0 = time.perf_counter()
-        state = state if state is not None else self.world.export_state()
-        tick = _state_tick(state)
+        state, tick = self._latest() if state is None else (state, _state_tick(state))
         if delay_ticks > 0 and prefix is None:
             prefix = self.rows_from(tick, delay_ticks)
         prefix = np.zeros((0, len(self.channels))) if prefix is None else np.asarray(prefix, dtype=np.float64)
@@ -330,7 +352,7 @@ class Mpc:
         return [{name: float(self.rng.uniform(lo, hi)) for name, (lo, hi) in self.randomize.items()}
                 for _ in range(self.draws)]
 
-    def _evaluate(self, state: bytes, tick: int, prefix: np.ndarray, rows: np.ndarray,
+    def _evaluate(self, state: Any, tick: int, prefix: np.ndarray, rows: np.ndarray,
                   draws: list[dict[str, float]]) -> tuple[np.ndarray, dict[str, np.ndarray], int]:
         n, d = len(rows), len(draws)
         plans = np.concatenate([np.broadcast_to(prefix, (n, *prefix.shape)), rows], axis=1) if len(prefix) else rows
@@ -339,10 +361,9 @@ class Mpc:
         for name in self.randomize:
             params[name] = [draws[k % d][name] for k in range(n * d)]
         ticks = len(prefix) + self.horizon
-        result = self.batch.run(ticks, branches=n * d, starts=state, params=params, record=self.record,
-                                keep_states=False)
+        recorded, ok = self._futures(state, ticks, n * d, params)
         skip = len(prefix)
-        signals = {name: v[:, skip:] for name, v in result.signals.items()}
+        signals = {name: v[:, skip:] for name, v in recorded.items()}
         controls = {ch: np.repeat(rows[:, :, k], d, axis=0) for k, ch in enumerate(self.channels)}
         try:
             raw = np.asarray(self.cost(Futures(signals, controls, self.dt)), dtype=np.float64)
@@ -352,7 +373,6 @@ class Mpc:
         if raw.shape != (n * d,):
             raise MpcError(f"mpc: the cost function returned shape {raw.shape} at the replan of tick {tick}; it "
                            f"returns one cost a future, shape ({n * d},)")
-        ok = np.array([s.ok for s in result.status])
         raw = np.where(ok & np.isfinite(raw), raw, np.inf)
         return self._aggregate(raw.reshape(n, d)), signals, int((~ok).sum())
 
@@ -429,7 +449,7 @@ class Mpc:
         w = world or self.world
         if w is not self.world:
             raise MpcError("mpc: run the world the controller was made for")
-        total, each = _ticks(w, duration, "duration"), _ticks(w, every, "every")
+        total, each = _ticks(self.dt, duration, "duration"), _ticks(self.dt, every, "every")
         end = w.tick_count + total
         while w.tick_count < end:
             self.apply(self.replan())
@@ -447,7 +467,7 @@ class Mpc:
             raise MpcError("mpc: run the world the controller was made for")
         if self._thread is not None:
             raise MpcError("mpc: already running; stop it first")
-        each = _ticks(w, every, "every")
+        each = _ticks(self.dt, every, "every")
         self._stop.clear()
         self._error = None
         if not w.running:
@@ -505,7 +525,7 @@ def _finite(x: Any) -> bool:
     return isinstance(x, (int, float, np.number)) and not isinstance(x, bool) and math.isfinite(float(x))
 
 
-def _ticks(world: World, value: int | float | str, what: str) -> int:
+def _ticks(dt_s: float, value: int | float | str, what: str) -> int:
     """A tick count from ticks (an int) or a duration (``"1s"``, or seconds as a float)."""
     if isinstance(value, bool):
         raise MpcError(f"mpc: {what} is {value!r}; give ticks or a duration")
@@ -516,7 +536,7 @@ def _ticks(world: World, value: int | float | str, what: str) -> int:
             seconds = parse_quantity(value, "time") if isinstance(value, str) else float(value)
         except (DynabrainError, TypeError, ValueError):
             raise MpcError(f"mpc: {what} is {value!r}; give ticks or a duration ('1s', or seconds)") from None
-        ticks = round(seconds / (world.dt_ns * 1e-9))
+        ticks = round(seconds / dt_s)
     if ticks < 1:
         raise MpcError(f"mpc: {what} is {value!r}: at least one tick")
     return ticks
