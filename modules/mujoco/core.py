@@ -219,6 +219,7 @@ class CompiledScene:
         # the robots a selection left out, animated (`mujoco.animate`); None when there are none
         robots = [e for e in edits.frozen if getattr(e, "animated", False) and e.object not in edits.absent]
         self.anim = animate.plan(layout.motor_joints, self.joint_slices, robots)
+        self.driven = animate.driven_joints(model)  # joints actuators drive: an object with one is a robot
         self._map_free(layout)
         self._attach(data if data is not None else mujoco.MjData(model))
 
@@ -793,7 +794,7 @@ class MujocoCore(EditedCore):
             for j in lay.body_joints[b]:
                 qa, nq, _da, _nv = s.joint_slices[j]
                 joints.append((j, tuple(map(float, s.qpos[qa:qa + nq]))))
-        robot = bool({j for j, _ in joints} & animate.driven_joints(s.model))  # a robot is animated, not frozen
+        robot = any(j in s.driven for j, _ in joints)  # a robot is animated, not frozen
         return ms.FrozenObject(obj, tuple(bodies), tuple(joints), robot)
 
     def _weld_data(self, a: str, b: str) -> tuple:
