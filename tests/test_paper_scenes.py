@@ -5,7 +5,8 @@ Each shipped scenario is run to its end and its expectations must hold. Beyond t
 scenarios are the same world and motion program but for the broom head's restitution, and the scattered
 and collected counts differ; a brain that imagines the sweep with candidate values chooses one that
 collects the garbage (examples/brooming.py); the walk's program in the scenario is the one examples/walk_kick.py
-computes; the kitchen's selection leaves what the task sees unchanged; the blocks a brain adds after
+computes, and so is the kitchen's (examples/kitchen_tray.py: the humanoid's IK poses and its grasps); the
+kitchen's selection leaves what the task sees unchanged; the blocks a brain adds after
 looking through the stereo camera (examples/recognised_blocks.py) are within a few millimetres and a
 degree of the true ones (skipped, with the reason, where no offscreen renderer works).
 """
