@@ -113,8 +113,8 @@ class YamlSource:
         self.lines[path] = node.start_mark.line + 1
         if node.tag not in CORE_TAGS:
             tag = "!!" + node.tag.removeprefix(_YAML) if node.tag.startswith(_YAML) else node.tag
-            self.problems.append(Problem(f"the YAML tag {tag} is not allowed: only the core schema's tags (strings, "
-                                         "numbers, booleans, null, lists, mappings)", self.file,
+            self.problems.append(Problem(f"cannot read this value: the YAML tag {tag} is not allowed (only the "
+                                         "core schema's: strings, numbers, booleans, null, lists, mappings)", self.file,
                                          node.start_mark.line + 1, self.field(path) or None))
             return None
         if isinstance(node, yaml.MappingNode):

@@ -16,7 +16,8 @@ it never reaches `eval`. What it may hold:
 Nothing else: no attribute of any other value, none starting with ``_``, no other call, no
 comprehension, lambda, f-string, assignment or keyword argument. A refused piece is named with the
 scenario's file:line. Whole numbers stay within `MAX_INT_BITS` (``10**10**10`` is refused, before the
-run when it is written with constants); an expression is at most `MAX_LENGTH` characters.
+run when it is written with constants, as is any constant part: ``sqrt(-1)``); an expression is at most
+`MAX_LENGTH` characters.
 """
 
 from __future__ import annotations
@@ -364,8 +365,10 @@ class Expression:
 
 
 def _is_constant(node: ast.AST) -> bool:
-    """Whether ``node`` reads nothing from the world (numbers and operators only)."""
-    return all(not isinstance(n, (ast.Name, ast.Attribute, ast.Call)) for n in ast.walk(node))
+    """Whether ``node`` reads nothing from the world: numbers, ``pi``, operators and calls of `FUNCTIONS`
+    on them (``sqrt(-1)`` and ``round(1e308*10)`` are then computed, and refused, before the run)."""
+    return all(not isinstance(n, ast.Attribute) and (not isinstance(n, ast.Name) or n.id in FUNCTIONS
+                                                     or n.id in CONSTANTS) for n in ast.walk(node))
 
 
 def _check_depth(root: ast.AST) -> None:

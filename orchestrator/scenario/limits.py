@@ -15,7 +15,7 @@ from pydantic import PlainValidator
 
 from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.history import parse_bytes
-from ..kernel.units import NS_PER_S, parse_duration_ns
+from ..kernel.units import NS_PER_S, parse_duration_ns, parse_exact
 
 MAX_NAME = 200
 """The longest name (of the scenario, a body, a module), in characters."""
@@ -33,6 +33,14 @@ MAX_SUBSTEPS = 10_000
 """The most physics steps per module step."""
 MAX_MAGNITUDE = 1e15
 """The largest magnitude of any other number: module parameters, stiffness, damping, event values."""
+MAX_PARAM_ITEMS = 1_000_000
+"""The most numbers (or items) one list in a module parameter holds."""
+MAX_PORT_VALUES = 50_000_000
+"""The most numbers a module's ports hold together (400 MB of the bus: a 4K colour image is 25 million), so
+that a count parameter (``n: 1e12``) is refused before the bus is laid out."""
+DURATION_KEYS = frozenset({"duration", "period", "delay", "timeout", "at", "every", "hold", "dwell", "start_time"})
+"""Keys of a parameter's mappings whose values are durations (``sequence: [{pose, duration}]``): a number or
+a quantity there is bounded by `MAX_DURATION_S`, as a value with a time unit anywhere is."""
 MAX_BODIES = 10_000
 """The most bodies a scene has: its shapes but planes, each copy a ``grid`` makes, each body of a model file.
 Compiling a physics model costs time that grows with the square of its free bodies (MuJoCo works out
@@ -91,11 +99,20 @@ def bounded(value: float, what: str, low: float | None = None, high: float | Non
     return value
 
 
-def check_magnitudes(value: Any, what: str, limit: float = MAX_MAGNITUDE) -> None:
+def check_magnitudes(value: Any, what: str, limit: float = MAX_MAGNITUDE, *, duration: bool = False) -> None:
     """Raise a `UnitError` when a number in ``value`` (a number, an array, a list or mapping of them)
-    is not finite or beyond ±``limit``. Other values (strings, flags) pass."""
-    if isinstance(value, bool) or value is None or isinstance(value, str):
+    is not finite or beyond ±``limit``; a string that is a quantity (``1e300s``, ``5e20``) is read and
+    held to the same; a duration (under a `DURATION_KEYS` key, or with a time unit) to `MAX_DURATION_S`;
+    a list to `MAX_PARAM_ITEMS` items. Other values (text, flags) pass."""
+    if isinstance(value, bool) or value is None:
         return
+    if isinstance(value, str):
+        _check_quantity(value, what, limit, duration)
+        return
+    if duration and isinstance(value, (int, float, np.integer, np.floating)):
+        bounded(float(value), what, -MAX_DURATION_S, MAX_DURATION_S)
+    if isinstance(value, (list, tuple, np.ndarray)) and len(value) > MAX_PARAM_ITEMS:
+        raise UnitError(f"{what} holds {len(value)} items, more than {MAX_PARAM_ITEMS} (MAX_PARAM_ITEMS)")
     if isinstance(value, (int, np.integer)):
         if abs(int(value)) > limit:
             raise UnitError(f"{what} must be within ±{limit:g}, got a whole number of {int(value).bit_length()} bits")
@@ -107,19 +124,49 @@ def check_magnitudes(value: Any, what: str, limit: float = MAX_MAGNITUDE) -> Non
             bounded(float(bad), what, -limit, limit)
     elif isinstance(value, (list, tuple)):
         for item in value:
-            check_magnitudes(item, what, limit)
+            check_magnitudes(item, what, limit, duration=duration)
     elif isinstance(value, dict):
         for key, item in value.items():
-            check_magnitudes(item, f"{what}.{key}", limit)
+            check_magnitudes(item, f"{what}.{key}", limit, duration=str(key) in DURATION_KEYS)
+
+
+def _check_quantity(text: str, what: str, limit: float, duration: bool) -> None:
+    """Hold a string that is a number with an optional unit (text that is not one passes) to the limits."""
+    try:
+        value = abs(parse_exact(text))
+    except UnitError:
+        return
+    if not duration and not _is_number(text):  # a unit: a time is a duration
+        try:
+            parse_exact(text, "time")
+            duration = True
+        except UnitError:
+            pass
+    if duration and value > MAX_DURATION_S:
+        raise UnitError(f"{what} {short(text)} is longer than {MAX_DURATION_S:g} s (MAX_DURATION_S)")
+    if value > limit:
+        raise UnitError(f"{what} must be within ±{limit:g}, got {short(text)}")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def param_problem(spec: Any, value: Any, limits: tuple[float, float] | None = None) -> str | None:
     """What is wrong with ``value`` for the parameter ``spec`` (a `Param`: its type and unit), its
-    finiteness and its range (``limits``, else `MAX_MAGNITUDE`), or None."""
+    finiteness and its range (``limits``, else `MAX_MAGNITUDE`; a time parameter's `MAX_DURATION_S`), or
+    None. The value as written is held to `check_magnitudes` too: a parameter the module reads itself
+    (a servo's ``sequence``) may hold quantities as text."""
     try:
         converted = spec.convert(value)
         if limits is None:
-            check_magnitudes(converted, "the value")
+            duration = getattr(spec, "dimension", None) == "time"
+            check_magnitudes(converted, "the value", duration=duration)
+            check_magnitudes(value, "the value", duration=duration)
         elif isinstance(converted, (int, float, np.ndarray, np.number)) and not isinstance(converted, bool):
             for x in np.ravel(converted):
                 bounded(float(x), "the value", *limits)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -446,6 +447,11 @@ class _Builder:
         except ModuleSpecError as exc:
             self.report(path if exc.field is None else (*path, exc.field), str(exc))
             return None
+        too_large = _port_values_problem(module)
+        if too_large:
+            module.close()
+            self.report((*path, "params") if cfg.params else path, f"module {cfg.name!r}: {too_large}")
+            return None
         for key in cfg.params if params is None else ():  # (an FMU's parameters are known once it is made)
             try:
                 check_magnitudes(module.params.get(key), f"parameter {key!r}")
@@ -539,6 +545,19 @@ class _Shifted:
 
     def problem(self, path: Path, message: str) -> Problem:
         return self.source.problem((*self.base, *path), message)
+
+
+def _port_values_problem(module: Module) -> str | None:
+    """What is wrong with the size of ``module``'s ports (`limits.MAX_PORT_VALUES`), or None; ports a
+    module declares only once it joins a world are counted then, by the kernel."""
+    try:
+        ports = [*module.inputs(), *module.outputs()]
+        values = sum(math.prod(p.shape) for p in ports if getattr(p, "view_of", None) is None)
+    except Exception:  # (ports that need the world; the module's own errors show when it is added)
+        return None
+    if values <= limits.MAX_PORT_VALUES:
+        return None
+    return f"its ports hold {values} numbers, more than {limits.MAX_PORT_VALUES} (MAX_PORT_VALUES)"
 
 
 def _period(value: Any) -> int | None:
