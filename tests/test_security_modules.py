@@ -14,8 +14,10 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from dynabrain.bridge import BrainClient, WorldRefusedError
 from dynabrain.bridge import protocol as p
 from dynabrain.bridge.calls import WorldService
+from dynabrain.bridge.testing import ServerProcess
 from dynabrain.orchestrator.cli.main import app
 from dynabrain.orchestrator.kernel import plugins
 from dynabrain.orchestrator.kernel.errors import DynabrainError
@@ -151,6 +153,20 @@ def test_a_bridge_call_cannot_import_the_cli_or_any_other_module(trap):
             allowed.make_module(p.ModuleSpec(name="x", python="trap_pkg.boom:X"))
     finally:
         world.close()
+
+
+def test_a_served_world_refuses_the_cli_and_answers_on():
+    """The issue's attack, for real: one add_module of the command line's __main__ ran it inside the server,
+    which then answered no call. Now it is refused, and the server goes on."""
+    with ServerProcess(str(ROOT / "bridge" / "arm.yaml")) as server, \
+            BrainClient("arm", connect=server.endpoint, timeout=20) as brain:
+        for python in ("dynabrain.orchestrator.cli.__main__:main", "dynabrain.orchestrator.cli.main:app"):
+            with pytest.raises(WorldRefusedError, match="not allowed"):
+                brain.add_module(name="x", python=python)
+        assert brain.status()["tick"] >= 0
+        brain.add_module(name="c", python="dynabrain.modules.basic:Counter")
+        assert brain.tick() >= 1
+    assert "Traceback" not in server.output and "Usage" not in server.output, server.output
 
 
 class Disguised(Module):
