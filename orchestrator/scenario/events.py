@@ -5,7 +5,8 @@ written as a scene item), ``add: {module...}``, ``remove: name``, ``make: [objec
 or ``make: {objects: [...], others: absent}`` (the others out of the simulation: `World.make`),
 ``make_joint: [a, b]`` (a weld) or ``{a: x, b: y, kind: hinge, axis: [0, 1, 0], anchor: [0, 0, 1m]}``,
 ``no_collision: [objects]``, ``place: {body: [x, y, z]}``, ``connect: [src, dst]``, ``disconnect: dst``,
-``remove_body: name``. ``set`` also takes a body's own ``core.<body>.friction`` and ``.restitution``.
+``remove_body: name``, ``remove_joint: name`` (a joint a ``make_joint`` event made: ``joint_<a>_<b>``
+unless named; a grasp let go). ``set`` also takes a body's own ``core.<body>.friction`` and ``.restitution``.
 One event may hold several of these; they apply in that order. Every event is checked at load, in
 time order, against the structure the events before it leave (a `Timeline`: which modules exist,
 which inputs are driven), so that removing a module twice, connecting an input already driven or
@@ -35,7 +36,7 @@ if TYPE_CHECKING:
     from .model import ModuleCfg, _Builder
 
 EVENT_KINDS = ("add_body", "set", "add", "remove", "make", "make_joint", "no_collision", "place", "connect",
-               "disconnect", "remove_body")
+               "disconnect", "remove_body", "remove_joint")
 
 
 class EventCfg(BaseModel):
@@ -53,6 +54,7 @@ class EventCfg(BaseModel):
     disconnect: str | None = None
     add_body: dict[str, Any] | None = None
     remove_body: str | None = None
+    remove_joint: str | None = None
 
 
 @dataclass
@@ -398,6 +400,20 @@ def _add_body(value: dict[str, Any], world: World, builder: _Builder, path: Path
     return lambda w: w.add_body(spec)
 
 
+def _remove_joint(value: str, world: World, builder: _Builder, path: Path):
+    """A joint made at run time by an earlier event, removed (checked against the joints made by then)."""
+    joints = builder.timeline.joints
+    if world.core is None:
+        builder.report(path, "remove_joint needs a physics core")
+    elif value not in joints:
+        made = ", ".join(sorted(joints)) or "none"
+        builder.report(path, f"remove_joint: no joint {value!r} made by an earlier event" + did_you_mean(value, joints)
+                       + f"; joints made by then: {made}")
+    else:
+        joints.discard(value)
+    return lambda w: w.remove_joint(value)
+
+
 def _remove_body(value: str, world: World, builder: _Builder, path: Path):
     timeline = builder.timeline
     core = world.core
@@ -498,5 +514,5 @@ def _check_signal(world: World, builder: _Builder, name: str, path: Path) -> boo
 _CHECKS = {
     "set": _set, "add": _add, "remove": _remove, "make": _objects("make"), "make_joint": _objects("make_joint"),
     "no_collision": _objects("no_collision"), "place": _place, "connect": _connect, "disconnect": _disconnect,
-    "add_body": _add_body, "remove_body": _remove_body,
+    "add_body": _add_body, "remove_body": _remove_body, "remove_joint": _remove_joint,
 }
