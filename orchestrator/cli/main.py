@@ -14,6 +14,7 @@ import logging
 import sys
 from importlib import metadata as importlib_metadata
 from pathlib import Path
+from typing import Annotated
 
 import typer
 from rich.markup import escape
@@ -32,9 +33,9 @@ _quiet = False
 """``-q`` before the command: no progress bar either."""
 
 
-AllowPythonOpt = typer.Option(
-    None, "--allow-python", help="a package whose module classes the scenario may name, besides dynabrain's own, "
-                                 "the registered ones and the scenario folder's modules (repeatable)")
+AllowPythonOpt = Annotated[list[str] | None, typer.Option(
+    "--allow-python", help="a package whose module classes the scenario may name, besides dynabrain's own, the "
+                           "registered ones and the scenario folder's modules (repeatable)")]
 
 
 def _load(path: Path, allow_python: list[str] | None) -> Scenario:
@@ -92,7 +93,7 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
         ros2_schemas: bool = typer.Option(False, "--ros2-schemas", help="--log: also write /joint_states, /clock "
                                           "and /tf as ROS 2 messages (CDR, ros2msg schemas) for rosbag2 tools"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
-        allow_python: list[str] | None = AllowPythonOpt) -> None:
+        allow_python: AllowPythonOpt = None) -> None:
     """Run a scenario to its end and check its expectations."""
     scenario = resolve_scenario(scenario)
     if not scenario.exists() and scenario.parent == Path("."):
@@ -178,7 +179,7 @@ def _duration_option(text: str) -> int:
 
 @app.command()
 def check(scenario: Path = typer.Argument(..., help="scenario YAML file"),
-          allow_python: list[str] | None = AllowPythonOpt) -> None:
+          allow_python: AllowPythonOpt = None) -> None:
     """Validate a scenario (every problem at once) and show what it builds; a module class outside
     dynabrain's own, the registered ones and the scenario folder is refused unimported (--allow-python)."""
     sc = _load(scenario, allow_python)
