@@ -174,3 +174,24 @@ def test_a_dead_worker_s_branch_is_lost_not_failed(processes):
     assert len(lost) == 1 and not lost[0].ok and "SIGKILL" in lost[0].reason
     assert all(s.ok for s in result.status if not s.lost)
     assert batch.run(5, branches=4).ok and batch._pool.replaced == replaced + 1
+
+
+def test_the_threads_backend_refuses_an_animated_robot_and_runs_a_core_with_joint_targets():
+    """A robot a selection left out follows its joint targets between MuJoCo steps: mujoco.rollout
+    cannot, so the threads backend says so; the same core with every robot selected has the
+    ``joint_target`` input too (no effect there) and rolls out."""
+    from dynabrain.modules.mujoco.core import MujocoCore
+    from dynabrain.orchestrator import World
+    from dynabrain.orchestrator.kernel.core import SceneSpec
+
+    model = ROOT.parent / "scenarios" / "models" / "earthquake.xml"
+    world = World("w", core=MujocoCore("core", SceneSpec(model=str(model))))
+    try:
+        assert "core.joint_target" in world.signals
+        with Batch(world, backend="threads", workers=1) as batch:
+            assert batch.run(3, branches=2, record=["core.joint_q"]).ok
+            world.make(["floor"])  # the robot is animated
+            with pytest.raises(DynabrainError, match="animated"):
+                batch.run(3, branches=2, record=["core.joint_q"])
+    finally:
+        world.close()

@@ -32,8 +32,9 @@ core's own code or by the MuJoCo calls the core makes:
 Refused before anything runs, saying what is supported: a world with any module besides the MuJoCo
 core, connections, scenario events within the branches' ticks, the RK4 integrator (the core's
 mj_step1/mj_step2 integrate it as Euler, mj_step does not), a core input it does not know, driving or
-holding a body velocity input (it sets the state between steps), recording what is not one of the
-core's ports.
+holding a body velocity input (it sets the state between steps), animated robots (a robot a selection
+left out follows its ``joint_target`` between steps; without one that input has no effect, and is
+not driven), recording what is not one of the core's ports.
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ CONST, QPOS, QVEL, SENS_PV, SENS_ACC, XPOS, XQUAT, UNKNOWN = range(8)
 OUTPUT_BLOCKS = ("body_pos", "body_quat", "joint_q", "joint_qd", "sensordata", "body_linvel", "body_angvel")
 DRIVEN_BLOCKS = ("ctrl", "joint_force", "body_wrench")  # inputs that become rollout's controls
 HELD_BLOCKS = ("body_velocity",)  # inputs it runs with only while they ask for nothing (NaN)
-INPUT_BLOCKS = DRIVEN_BLOCKS + HELD_BLOCKS
+ANIMATION_BLOCKS = ("joint_target",)  # inputs only animated robots follow (which it refuses): no effect here
+INPUT_BLOCKS = DRIVEN_BLOCKS + HELD_BLOCKS + ANIMATION_BLOCKS
 SUPPORTED_INPUTS = ("the core's actuator controls, joint forces and free-body wrenches (core.ctrl, "
                     "core.<actuator>.ctrl, core.joint_force, core.<joint>.force, core.body_wrench, core.<body>.wrench)")
 SUPPORTED_RECORD = ("the core's ports: body pos, quat, linvel, angvel; joint q, qd; sensors and sensordata; its inputs "
@@ -359,6 +361,13 @@ class RolloutBackend:
             return None
         view = self._check_world(scratch).mj
         self._check_events(scratch, scratch.tick_count, ticks)
+        edits = view.edits
+        animated = sorted(f.object for f in edits.frozen
+                          if getattr(f, "animated", False) and f.object not in edits.absent)
+        if animated:
+            raise refuse(f"robot(s) {', '.join(animated)} are animated (left out by a selection, they follow their "
+                         "joint targets between MuJoCo steps, which mujoco.rollout cannot); use backend 'serial' or "
+                         "'processes'")
         bus = {b: np.asarray(scratch.get(f"{ports.core}.{b}"), dtype=np.float64).reshape(-1) for b in ports.sizes}
         held = [f"{ports.core}.{b}" for b in HELD_BLOCKS if b in bus and not np.isnan(bus[b]).all()]
         if held:
