@@ -32,6 +32,16 @@ _SINKS: dict[int, LogSink] = {}
 _KEYS = itertools.count(1)
 
 
+_CALL_TRACE: list[Callable[[str], None]] = []
+
+
+def trace_calls(fn: Callable[[str], None]) -> None:
+    """Tell ``fn`` the name of every FMI call that instances made from now on in this process make,
+    before it is made (their steps then go through Python). The child process of `checkproc` does,
+    so that when an FMU kills it the parent can say which call did."""
+    _CALL_TRACE[:] = [fn]
+
+
 class LogSink:
     """The last messages an FMU instance logged (they go into error messages) and a logger."""
 
@@ -108,20 +118,26 @@ class FmuApi:
     def __init__(self, info: FmuInfo, unzip_dir: str, name: str):
         self.info, self.name, self.unzip_dir = info, name, unzip_dir
         self.sink = LogSink(f"{name} ({info.source or pathlib.Path(info.path).name})")
-        self.on_call: Callable[[str], None] | None = None
-        """Told the FMI function about to be called (isolation records it for crash reports)."""
+        self.on_call: Callable[[str], None] | None = _CALL_TRACE[0] if _CALL_TRACE else None
+        """Told the FMI function about to be called (isolation and `trace_calls` record it for crash reports)."""
         self.instance: int | None = None
         self.dead = False
         self._fmu = self._load()
         self.c: dict[str, Any] = {}
         for key, (cname, restype, argtypes) in self.CALLS.items():
-            self.c[key] = _bind(self._fmu._functions[cname], restype, *argtypes)
+            self.c[key] = _bind(self._fmu._functions[self.symbol(cname)], restype, *argtypes)
+
+    @staticmethod
+    def symbol(cname: str) -> str:
+        """The key FMPy loaded the FMI function ``cname`` under."""
+        return cname
 
     def _load(self) -> Any:
+        from fmpy.fmi1 import FMU1Slave
         from fmpy.fmi2 import FMU2Slave
         from fmpy.fmi3 import FMU3Slave
 
-        cls = FMU2Slave if self.version == 2 else FMU3Slave
+        cls = {1: FMU1Slave, 2: FMU2Slave, 3: FMU3Slave}[self.version]
         cwd = os.getcwd()  # FMPy changes the working folder while loading and not back when it fails
         try:
             return cls(guid=self.info.token, modelIdentifier=self.info.model_identifier,
@@ -440,4 +456,8 @@ class Fmi3Api(FmuApi):
 
 
 def make_api(info: FmuInfo, unzip_dir: str, name: str) -> FmuApi:
+    if info.version == 1:
+        from .api1 import Fmi1Api
+
+        return Fmi1Api(info, unzip_dir, name)
     return (Fmi2Api if info.version == 2 else Fmi3Api)(info, unzip_dir, name)

@@ -21,14 +21,15 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from . import codegen
+from .codegen1 import model_description1
 from .errors import FMUBuildError
 from .paths import SHARED_LIB_EXT, binary_dir, cache_dir, fmi_headers_dir, glue_dir
 from .spec import FmuSpec, load_spec, spec_digest_inputs
 
 BUILD_FORMAT = "1"
-GENERATOR_FILES = tuple(Path(__file__).with_name(n) for n in ("spec.py", "codegen.py", "build.py"))
+GENERATOR_FILES = tuple(Path(__file__).with_name(n) for n in ("spec.py", "codegen.py", "codegen1.py", "build.py"))
 """The generator's own sources are inputs of every build: changing them rebuilds."""
-GLUE_FILES = ("fmu_model.h", "fmu_glue.h", "fmu_core.c", "fmi2_glue.c", "fmi3_glue.c")
+GLUE_FILES = ("fmu_model.h", "fmu_glue.h", "fmu_core.c", "fmi1_glue.c", "fmi2_glue.c", "fmi3_glue.c")
 CFLAGS = ("-std=c11", "-O2", "-fPIC", "-shared", "-fvisibility=hidden", "-Wall",
           "-Werror=implicit-function-declaration", "-Werror=incompatible-pointer-types")
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)
@@ -113,9 +114,10 @@ def _build(spec: FmuSpec, version: int, digest: str, target: Path) -> None:
         (gen / "model_tables.inc").write_text(codegen.tables_inc(spec, version, guid))
         lib = work / f"{spec.name}{SHARED_LIB_EXT}"
         glue = glue_dir()
+        named = (f"-DMODEL_IDENTIFIER={spec.name}",) if version == 1 else ()  # FMI 1.0 prefixes its functions
         compile_library([glue / "fmu_core.c", glue / f"fmi{version}_glue.c", *spec.sources], lib,
-                        include=[gen, glue, spec.folder], flags=spec.cflags, what=f"FMU {spec.folder}")
-        xml = codegen.model_description(spec, version, guid)
+                        include=[gen, glue, spec.folder], flags=(*spec.cflags, *named), what=f"FMU {spec.folder}")
+        xml = model_description1(spec, guid) if version == 1 else codegen.model_description(spec, version, guid)
         packed = work / "out.fmu"
         package_fmu(packed, xml, {binary_dir(version): lib})
         validate_built(packed, spec.folder)

@@ -55,7 +55,7 @@ def entries(spec: FmuSpec, version: int) -> list[Entry]:
     out: list[Entry] = []
     vr = 1
     for var in spec.variables:
-        if version == 2 and var.size is not None:
+        if version != 3 and var.size is not None:  # FMI 1.0 and 2.0: one reference per element
             for i in range(var.size):
                 out.append(Entry(vr, var, i, f"{var.name}[{i + 1}]"))
                 vr += 1

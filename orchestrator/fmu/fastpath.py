@@ -30,7 +30,8 @@ from .errors import FMUBuildError
 from .paths import SHARED_LIB_EXT, cache_dir, glue_dir
 
 _log = logging.getLogger("dynabrain.fmu")
-CALLS = {2: {1: "fmi2SetReal", 2: "fmi2DoStep", 3: "fmi2GetReal", 4: "fmi2GetFMUstate"},
+CALLS = {1: {1: "fmiSetReal", 2: "fmiDoStep", 3: "fmiGetReal", 4: "fmiGetFMUstate"},
+         2: {1: "fmi2SetReal", 2: "fmi2DoStep", 3: "fmi2GetReal", 4: "fmi2GetFMUstate"},
          3: {1: "fmi3SetFloat64", 2: "fmi3DoStep", 3: "fmi3GetFloat64", 4: "fmi3GetFMUState"}}
 TERMINATE, EARLY_RETURN, NONFINITE = 6, 7, 8
 
@@ -117,10 +118,10 @@ class Stepper:
         self._flags = np.zeros(4, dtype=np.float64).view(np.uint8)  # FMI 3 DoStep's flags and time
         self.fn: Callable[..., int]
         self.arg: int
-        if self.c_helper is not None:
+        if self.c_helper is not None and api.on_call is None:
             self.fn, self.arg = self.c_helper, ctypes.addressof(self.plan)
-        else:
-            self.fn, self.arg = self._py_step, 0
+        else:  # (calls traced: each is told before it is made)
+            self.trace, self.fn, self.arg = api.on_call, self._py_step, 0
 
     @property
     def event_needed(self) -> int:
@@ -142,7 +143,7 @@ class Stepper:
         c = api.c
         p.instance = api.instance
         p.set_real, p.do_step = _addr(c["set_real"]), _addr(c["do_step"])
-        p.get_real, p.get_state = _addr(c["get_real"]), _addr(c["get_state"])
+        p.get_real, p.get_state = _addr(c["get_real"]), _addr(c.get("get_state"))  # (FMI 1.0 has no states)
         p.in_vr, p.n_in_vr = self.in_vrs.ctypes.data, len(self.in_vrs)
         p.in_, p.n_in = in_values.ctypes.data, self.n_in
         p.out_vr, p.n_out_vr = self.out_vrs.ctypes.data, len(self.out_vrs)

@@ -131,9 +131,10 @@ def read_fmu_info(path: str | Path, label: str | None = None) -> FmuInfo:
     if "modelDescription.xml" not in names:
         raise FMUError(f"FMU {name}: the archive has no modelDescription.xml")
     md = _read_description(path, name)
-    version = 2 if md.fmiVersion == "2.0" else 3 if str(md.fmiVersion).startswith("3.") else None
+    version = {"1.0": 1, "2.0": 2}.get(md.fmiVersion, 3 if str(md.fmiVersion).startswith("3.") else None)
     if version is None:
-        raise FMUError(f"FMU {name}: FMI version {md.fmiVersion} is not supported (dynabrain runs FMI 2.0 and 3.0)")
+        raise FMUError(f"FMU {name}: FMI version {md.fmiVersion} is not supported (dynabrain runs FMI 1.0, 2.0 and "
+                       "3.0)")
     cs = md.coSimulation
     if cs is None:
         kinds = [k for k, v in (("model exchange", md.modelExchange),
@@ -216,7 +217,7 @@ def _shape(variable: Any, md: Any, name: str) -> tuple[int, ...]:
 
 
 def _signals(md: Any, version: int, name: str, clocks: tuple[FmuClock, ...] = ()) -> tuple[tuple[Signal, ...], ...]:
-    types = _TYPES2 if version == 2 else _TYPES3
+    types = _TYPES3 if version == 3 else _TYPES2  # FMI 1.0 has FMI 2.0's types
     loose: list[tuple[Any, str, tuple[int, ...]]] = []
     skipped, ports = [], 0
     clock_ports = {c.vr for c in clocks if c.on_bus}

@@ -42,7 +42,7 @@ def glue_dir() -> Path:
 
 def binary_dir(version: int) -> str:
     """The folder inside an FMU that holds this machine's binary."""
-    return f"binaries/{FMI2_PLATFORM if version == 2 else FMI3_PLATFORM}"
+    return f"binaries/{FMI3_PLATFORM if version == 3 else FMI2_PLATFORM}"  # FMI 1.0 and 2.0 name it alike
 
 
 def split_version(ref: str) -> tuple[str, int | None]:
@@ -50,8 +50,8 @@ def split_version(ref: str) -> tuple[str, int | None]:
     path, sep, suffix = ref.rpartition("@")
     if not sep:
         return ref, None
-    if suffix not in ("fmi2", "fmi3"):
-        raise FMUError(f"FMU reference {ref!r}: the suffix after @ is fmi2 or fmi3, not {suffix!r}")
+    if suffix not in ("fmi1", "fmi2", "fmi3"):
+        raise FMUError(f"FMU reference {ref!r}: the suffix after @ is fmi1, fmi2 or fmi3, not {suffix!r}")
     return path, int(suffix[-1])
 
 

@@ -133,7 +133,8 @@ class Session:
         self.n_out_all = sum(s.size for s in info.outputs)
         real_in = [s for s in unclocked(info.inputs) if s.type == "real"]
         real_out = [s for s in unclocked(info.outputs) if s.type == "real"]
-        self.stepper = Stepper(api, _vrs(real_in), self.n_in, _vrs(real_out), self.n_out, no_prior=not rollback)
+        self.stepper = Stepper(api, _vrs(real_in), self.n_in, _vrs(real_out), self.n_out,
+                               no_prior=not (rollback and info.can_get_set))  # no state: no step is redone
         self.stepper.set_start_time(start_time)
         self.pool = StatePool(api) if rollback and info.can_get_set else None
         self.params = {s.name: s for s in info.params}

@@ -36,6 +36,8 @@ from .errors import FMUBuildError
 IDENT = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 VarType = Literal["real", "float32", "int8", "uint8", "int16", "uint16", "integer", "uint32", "int64", "uint64",
                   "boolean", "enumeration", "string", "binary"]
+FMI1_TYPES = ("real", "integer", "boolean", "string")
+"""The types an FMI 1.0 build takes."""
 FMI3_ONLY = ("float32", "int8", "uint8", "int16", "uint16", "uint32", "int64", "uint64", "binary")
 """Types FMI 2.0 does not have."""
 INT_RANGES = {"int8": (-2**7, 2**7 - 1), "uint8": (0, 2**8 - 1), "int16": (-2**15, 2**15 - 1),
@@ -108,7 +110,7 @@ class SpecCfg(_Strict):
     name: str
     description: str = ""
     version: str = "1.0"
-    fmi: list[Literal[2, 3]] = [2]
+    fmi: list[Literal[1, 2, 3]] = [2]
     defines: dict[str, int] = {}
     sources: list[str] | None = None
     """C files of the model (default: every ``*.c`` in the folder)."""
@@ -221,7 +223,7 @@ class _Checker:
             if not IDENT.match(key):
                 self.report(("defines", key), f"define {key!r} is not a C identifier")
         if not cfg.fmi or len(set(cfg.fmi)) != len(cfg.fmi):
-            self.report(("fmi",), "fmi lists each version (2, 3) once")
+            self.report(("fmi",), "fmi lists each version (1, 2, 3) once")
         variables = self._variables()
         clocks = self._clocks(variables)
         c_state = self._c_state({v.name for v in variables} | {c.name for c in clocks})
@@ -258,7 +260,7 @@ class _Checker:
             if c.variability in ("changing", "countdown") and c.shift:
                 self.report((*path, "shift"), f"a {c.variability} clock has no shift")
             out.append(Clock(c.name, c.causality, c.interval, c.shift, c.description, c.variability))
-        if out and 2 in self.cfg.fmi:
+        if out and (1 in self.cfg.fmi or 2 in self.cfg.fmi):
             self.report(("clocks",), "clocks are FMI 3.0: build this FMU for FMI 3.0 only (fmi: [3])")
         known = {c.name for c in out}
         for i, v in enumerate(self.cfg.variables):
@@ -323,6 +325,8 @@ class _Checker:
         if v.type in FMI3_ONLY and 2 in self.cfg.fmi:
             self.report((*path, "type"), f"FMI 2.0 has no {v.type} variables: build this FMU for FMI 3.0 only "
                         "(fmi: [3])")
+        elif v.type not in FMI1_TYPES and 1 in self.cfg.fmi:  # (FMI 1.0 enumerations need types: not written)
+            self.report((*path, "type"), f"an FMI 1.0 build takes {', '.join(FMI1_TYPES)} variables, not {v.type}")
         if v.type == "enumeration":
             items = v.items or []
             if not items or len(set(items)) != len(items):
