@@ -4,15 +4,15 @@
 - ``build DIR``: compile against the FMI headers, package and validate (``--fmi 2|3``, default every
   version fmu.yaml lists; ``-o`` a folder to copy the .fmu files into, else they stay in the cache);
 - ``check FILE``: validate a .fmu (or a source folder, built first), run it briefly, check the
-  save/restore round trip, replay equality and fork (``--ticks``: no run goes further; an FMU that
-  asks to end the simulation is checked up to there). Each problem is printed once.
+  save/restore round trip, replay equality and fork, in a child process (an FMU that crashes gets a
+  verdict; ``--ticks``: no run goes further; an FMU that asks to end the simulation is checked up
+  to there). Each problem is printed once.
 
 Exit codes: 0 ok, 1 a check failed, 2 bad input (a build error, a broken FMU).
 """
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Annotated
 
@@ -70,16 +70,17 @@ def build(folder: Annotated[Path, typer.Argument(help="a source folder with fmu.
 def check(fmu: Annotated[str, typer.Argument(help="a .fmu file or a source folder (add @fmi3 to pick a version)")],
           ticks: Annotated[int, typer.Option(min=12, help="ticks every run of the check may take at most (the "
                                                           "FMU's default step each; at least 12)")] = 40) -> None:
-    """Validate an FMU, run it briefly and check save/restore, replay and fork. An FMU that asks to end
-    the simulation is checked up to there."""
-    from ..fmu.check import check_fmu
+    """Validate an FMU, run it briefly and check save/restore, replay and fork, in a process of its own
+    (an FMU that crashes gets a verdict naming the call and the probe). An FMU that asks to end the
+    simulation is checked up to there."""
+    from ..fmu.checkproc import check_fmu_apart
 
-    once = _Once()  # the FMU's log lines: each once (its errors are in the report)
-    logging.getLogger("dynabrain.fmu").addFilter(once)
     try:
-        report = check_fmu(fmu, ticks=ticks)
-    finally:
-        logging.getLogger("dynabrain.fmu").removeFilter(once)
+        report, output = check_fmu_apart(fmu, ticks=ticks)
+    except DynabrainError as exc:
+        _fail(exc)
+    for line in output:  # the FMU's log lines, each once (its errors are in the report)
+        err_console.print(line, markup=False)
     if report.info is None:
         err_console.print(f"error: {report.problems[0]}", markup=False)
         raise typer.Exit(2)
@@ -88,21 +89,6 @@ def check(fmu: Annotated[str, typer.Argument(help="a .fmu file or a source folde
                   f"parameters; get/set state: {info.can_get_set}, serialize: {info.can_serialize}", markup=False)
     console.print(str(report), markup=False)
     raise typer.Exit(0 if report.ok else 1)
-
-
-class _Once(logging.Filter):
-    """Lets each message through once."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.seen: set[str] = set()
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        text = record.getMessage()
-        if text in self.seen:
-            return False
-        self.seen.add(text)
-        return True
 
 
 def register(app: typer.Typer) -> None:

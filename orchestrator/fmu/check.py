@@ -48,12 +48,15 @@ class FmuCheckReport(CheckReport):
 
 
 def check_fmu(fmu: str, *, base_dir: str = ".", ticks: int = 40, step: str | int | None = None,
-              seed: int = 0) -> FmuCheckReport:
+              seed: int = 0, on_phase: Callable[[str], None] | None = None) -> FmuCheckReport:
     """Check the FMU at ``fmu`` in runs of at most ``ticks`` ticks (at least `MIN_TICKS`); ``step``
-    defaults to the FMU's default step, else 1 ms."""
+    defaults to the FMU's default step, else 1 ms. ``on_phase`` is told each phase as it begins (the
+    check's child process keeps it for a crash report: `checkproc`)."""
     if ticks < MIN_TICKS:
         raise DynabrainError(f"check_fmu needs at least {MIN_TICKS} ticks, got {ticks}")
+    phase = on_phase or (lambda _: None)
     report = FmuCheckReport(fmu)
+    phase("loading")
     try:
         info = load_fmu_info(fmu, base_dir=base_dir)
     except DynabrainError as exc:
@@ -63,11 +66,14 @@ def check_fmu(fmu: str, *, base_dir: str = ".", ticks: int = 40, step: str | int
     report.checked.append("model description")
     if info.skipped:
         report.notes.append("not on the bus: " + ", ".join(info.skipped))
+    phase("validation")
     _validate(info, report)
     dt = step if step is not None else (f"{round(info.default_step * 1e9)}ns" if info.default_step else "1ms")
+    phase(f"run of {ticks} ticks")
     limit = _simulate(info, fmu, dt, ticks, seed, report)
     if limit is None:
         return _once(report)
+    phase("state checks")
     module = FMUModule("fmu", info, source=fmu)
     # check_module runs ticks k (+ 5 steady, + a replay of k, + 5 forked when the module can roll back)
     sub_ticks = (limit - 10) // 2 if module.CAPABILITIES.can_rollback else limit

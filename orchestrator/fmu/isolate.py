@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import mmap
+import os
 import pickle
 import shutil
 import signal
@@ -74,6 +75,10 @@ class _Child:
         with open(trace_path, "r+b") as fh:
             self.trace = mmap.mmap(fh.fileno(), TRACE_SIZE)
         self.log = open(self.log_path, "wb")  # noqa: SIM115 - open for the child's whole life
+        self.log_fd = self.log.fileno()
+        self.since = 0
+        """Where the child's output of the current request begins in its log (the file's offset, which
+        the child's writes move: they share the open file)."""
         try:
             self.proc, self.conn = spawn_worker("dynabrain.orchestrator.fmu.worker", str(trace_path), stdout=self.log,
                                                 stderr=subprocess.STDOUT)
@@ -100,9 +105,15 @@ class _Child:
         else:
             how = f"exited with status {rc}"
         self.log.flush()
-        tail = self.log_path.read_bytes()[-1500:].decode("utf-8", "replace").strip()
+        with open(self.log_path, "rb") as fh:  # only what it wrote since the request began
+            fh.seek(self.since)
+            tail = fh.read()[-1500:].decode("utf-8", "replace").strip()
         lines = [ln for ln in tail.splitlines() if ln.strip()][-6:]
-        return how + ("; its last output: " + " | ".join(lines) if lines else "")
+        return how + ("; its output in this call: " + " | ".join(lines) if lines else "")
+
+    def mark_log(self) -> None:
+        """A request begins: its output starts here."""
+        self.since = os.lseek(self.log_fd, 0, os.SEEK_CUR)
 
     def stop(self) -> None:
         with contextlib.suppress(Exception):
@@ -195,6 +206,7 @@ class IsolatedFMUModule(FMUModuleBase):
         if child is None:
             raise FMUCrashError(self.name, op, None, "the FMU process is not running")
         try:
+            child.mark_log()
             child.conn.send((op, *args))
             if not child.conn.poll(self.call_timeout if timeout is None else timeout):
                 raise self._hung(op, self.call_timeout if timeout is None else timeout)
@@ -213,6 +225,7 @@ class IsolatedFMUModule(FMUModuleBase):
         ins[:] = self._gather_inputs()
         try:
             conn = child.conn
+            child.mark_log()
             conn.send_bytes(STEP)
             end = perf_counter() + SPIN_S  # wait awake a little: a step is often back by then
             while not conn.poll(0):
