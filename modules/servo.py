@@ -42,6 +42,7 @@ is built (``defines: {N: ...}``).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import mujoco
@@ -53,6 +54,21 @@ from .motion import INTERPOLATIONS, Motion, MotionError, parse_motion, parse_pos
 from .mujoco.access import MujocoLink, fail
 
 _add, _subtract, _multiply, _minimum, _maximum = np.add, np.subtract, np.multiply, np.minimum, np.maximum
+
+
+_PROGRAMS: dict[int, tuple[Motion, tuple]] = {}  # id of a program -> (it, what it is made of): `_program_key`
+
+
+def _program_key(motion: Motion) -> tuple:
+    """What a program is made of (its times, poses, loop, interpolation): equal keys play the same
+    values at the same time, so branches whose programs are equal copies (a fork's, an imported state's)
+    evaluate one. Kept per program object (held, so its id stays its own), made once."""
+    hit = _PROGRAMS.get(id(motion))
+    if hit is None or hit[0] is not motion:
+        if len(_PROGRAMS) >= 4096:
+            _PROGRAMS.clear()
+        hit = _PROGRAMS[id(motion)] = (motion, (motion.times, motion.poses.tobytes(), motion.loop, motion.smooth))
+    return hit[1]
 
 
 class Servo(Module):
@@ -176,6 +192,52 @@ class Servo(Module):
             cmd *= -math.expm1(-dt_ns * 1e-9 / lag)
             self._tau += cmd
         self._ctrl[...] = self._tau
+
+    @classmethod
+    def step_batch(cls, members: Sequence[Module], t_ns: int, dt_ns: int, inp: np.ndarray, out: np.ndarray,
+                   failed: dict[int, BaseException]) -> np.ndarray:
+        """The servos of N branches in one go (`Module.step_batch`): each one's `step`, the same numpy
+        operations over a leading branch axis (elementwise, so each row has the bits of its own step).
+        Programs, gains and lags may differ per branch (a branch's parameters); the program is evaluated
+        once per distinct (program, start)."""
+        servos: list[Servo] = list(members)  # type: ignore[arg-type]
+        n = len(servos[0]._joints)
+        q, qd, ref = inp[:, :n], inp[:, n:2 * n], inp[:, 2 * n:3 * n]
+        programs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        for servo in servos:
+            if servo._pending is not None:
+                servo._begin(t_ns)
+            if servo._param_values is not servo._gains_of:
+                servo._take_gains()
+        keys = [(_program_key(s._motion), s._t0) for s in servos]
+        for servo, key in zip(servos, keys, strict=True):
+            if key not in programs:
+                programs[key] = servo._motion.at(t_ns - servo._t0)
+        first = servos[0]
+        pos, rate = next(iter(programs.values())) if len(programs) == 1 else (
+            np.stack([programs[key][i] for key in keys]) for i in (0, 1))
+        same_gains = all(s._gains_of is first._gains_of for s in servos)
+        kp, kd, high, low = first._gains[:4] if same_gains else (
+            np.stack([s._gains[i] for s in servos]) for i in range(4))
+        new = np.empty(out.shape)
+        tau, target = new[:, :n], new[:, 2 * n:3 * n]
+        _add(pos, ref, out=target)
+        _subtract(target, q, out=tau)
+        _multiply(tau, kp, out=tau)
+        damp = _subtract(rate, qd)
+        _multiply(damp, kd, out=damp)
+        _add(tau, damp, out=tau)
+        _minimum(tau, high, out=tau)
+        _maximum(tau, low, out=tau)
+        lags = [s._gains[4] for s in servos]
+        if any(lag > 0 for lag in lags):  # the motor follows the command (per branch: its own lag)
+            rows = np.flatnonzero(np.array(lags) > 0)
+            previous = out[rows, :n]
+            cmd = tau[rows] - previous
+            cmd *= np.array([-math.expm1(-dt_ns * 1e-9 / lags[r]) for r in rows])[:, None]
+            tau[rows] = previous + cmd
+        new[:, n:2 * n] = tau
+        return new
 
     def _take_gains(self) -> None:
         """Cache the gains of the current parameter dict (copy-on-write: a new dict is a change), as

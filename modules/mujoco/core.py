@@ -83,7 +83,7 @@ from dynabrain.orchestrator.kernel.core import (
 from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Capabilities, Param, Port, SetupContext
 
-from . import animate, warning_log
+from . import animate, batched, warning_log
 from . import options as mo
 from . import scene as ms
 
@@ -542,6 +542,12 @@ class MujocoCore(EditedCore):
             raise PhysicsDivergedError(self.name, "step", None, self._divergence(s, bad))
         for dst, di, src, si in moves[2]:  # the outputs that can change in a step (`_write_outputs`)
             dst[di] = src if si is None else src[si]
+
+    @classmethod
+    def step_batch(cls, members: Sequence[Any], t_ns: int, dt_ns: int, inp: Any, out: Any,
+                   failed: dict[int, BaseException]) -> None:
+        """The cores of N branches stepped one tick, their physics on threads (`batched.step_cores`)."""
+        batched.step_cores(members, t_ns, dt_ns, failed)
 
     def get_state(self) -> tuple:
         s = self._compiled

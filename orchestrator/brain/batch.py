@@ -35,6 +35,10 @@ Backends, one API:
   `load_world`) or ``build=``; states cross as exported bytes; every core is used;
 - ``threads``: a world whose only module is a MuJoCo core, through ``mujoco.rollout`` on threads
   (no Python per step; `rollout.RolloutBackend` says what it maps and refuses);
+- ``lockstep``: every branch in this process, advanced tick by tick together: the N physics of a tick
+  in one call on threads (GIL released), each module stepped once for all branches through its
+  batched step (`Module.step_batch`: numpy in the shipped modules; others branch by branch); any
+  world, per-branch starts, parameters and inputs (`lockstep.LockstepBackend`);
 - ``ray``: the same workers as Ray actors, on a local Ray or a cluster (``address=``), for a brain
   that outgrows one machine (``pip install 'dynabrain[ray]'``);
 - ``auto``: ``processes`` when the machine has more than one core and the world can be rebuilt,
@@ -64,7 +68,7 @@ from ..kernel.observers import Imagined
 from ..kernel.world import World
 from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 
-BACKENDS = ("auto", "serial", "processes", "ray", "threads")
+BACKENDS = ("auto", "serial", "processes", "ray", "threads", "lockstep")
 
 
 class BranchStatuses:
@@ -98,6 +102,8 @@ class BatchResult(BranchStatuses):
     backend: str
     wall_s: float
     branch_ticks: list[int] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    """What the backend did other than the usual (``lockstep``: branches stepped in groups, or run alone)."""
 
     def branch(self, name: str, b: int) -> np.ndarray:
         """What branch ``b`` recorded of ``name``, its own ticks only: ``(branch_ticks[b], *shape)``."""
@@ -212,7 +218,9 @@ class Batch:
             if len(self._issued) > 4096:
                 self._issued.clear()
             self._issued.update((id(o.state), o.state) for o in outcomes if o.state is not None)
-        return _assemble(outcomes, tasks, self._shapes(record), self.backend, wall)
+        result = _assemble(outcomes, tasks, self._shapes(record), self.backend, wall)
+        result.notes = list(getattr(self._pool, "notes", ()))
+        return result
 
     def _prepare(self) -> None:
         """Make the private world or the workers before a batch runs on another thread (the serial
@@ -236,6 +244,10 @@ class Batch:
                 from .pool import ProcessPool
 
                 self._pool = ProcessPool(self.build, self.workers or os.cpu_count() or 1)
+            elif self.backend == "lockstep":  # every branch here, tick by tick together (brain/lockstep.py)
+                from .lockstep import LockstepBackend
+
+                self._pool = LockstepBackend(self.world, self.workers)
             elif self.backend == "threads":  # a core-only MuJoCo world, through mujoco.rollout (brain/rollout.py)
                 from .rollout import RolloutBackend
 

@@ -396,6 +396,33 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
         (`orchestrator.fmu.fused`), and so do the MuJoCo sensors (`modules.sensors.FusedSensors`)."""
         return None
 
+    @classmethod
+    def step_batch(cls, members: Sequence[Module], t_ns: int, dt_ns: int, inp: np.ndarray, out: np.ndarray,
+                   failed: dict[int, BaseException]) -> np.ndarray | None:
+        """Step ``members`` (the same module of N branches of one world, each bound to its own row of a
+        stacked bus, each in its own state) from ``t_ns`` to ``t_ns + dt_ns``, as one call: what a
+        batch's ``lockstep`` backend calls once a tick instead of N `step` calls. ``inp`` is every
+        member's inputs as one ``(N, inputs)`` array (row k: member k's `inp_flat`), ``out`` their
+        outputs before the step, ``(N, outputs)`` (row k: member k's `out_flat`); both read-only here.
+
+        Return the outputs after the step as one ``(N, outputs)`` float64 array (the batch writes it into
+        each member's outputs, after checking its shape: a wrong one is an error naming the module and
+        its ports), or None when each member wrote its own through its binding. A member whose step
+        fails goes into ``failed`` (its index in ``members`` -> the exception) and the others go on; its
+        branch is stepped again alone, so that it fails as it would have. Each member's state, and each
+        row of what it returns, must be bit for bit what the member's own `step` makes (elementwise
+        numpy over a leading branch axis is; a sum over a differently ordered axis may not be).
+
+        By default each member steps on its own (a module without a batched step is stepped branch by
+        branch); a class overrides it when one call over the branches costs less, as the servo does
+        (numpy), and the MuJoCo core (its N physics steps on threads, with the GIL released)."""
+        for k, member in enumerate(members):
+            try:
+                member.step(t_ns, dt_ns)
+            except Exception as exc:  # the branch's failure, reported through `failed`
+                failed[k] = exc
+        return None
+
     def steps_change_state(self) -> bool:
         """Whether `step` may change what `get_state` returns. The answer holds until a parameter
         changes, the structure changes or the world restores a state; the kernel asks again after

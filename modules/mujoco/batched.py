@@ -1,0 +1,102 @@
+"""The MuJoCo core's batched step (`MujocoCore.step_batch`): the cores of N branches of one world, stepped
+once a tick together, their physics on threads.
+
+Each core's tick is its own `MujocoCore.step`, cut in three: its inputs copied into its MjData (Python,
+a few copies a core), the physics (`mj_step2`, the substeps' `mj_step`, `mj_step1`: MuJoCo's C, which
+the bindings call with the GIL released), its outputs copied onto its row of the bus (Python). The
+physics of all N cores runs in one go on ``workers`` threads (this thread takes a share too), each
+stepping its slice of the cores one after the other: one hand-over per thread and tick, not per core.
+The calls and their order on each core's data are those of `MujocoCore.step`, so a core's state is the
+same bit for bit whichever thread stepped it and whatever the others did.
+
+A core that needs Python between its physics calls steps alone, with its own `step`, before the rest:
+an animated robot's (its motion is set between `mj_step2` and `mj_step1`) and one whose velocity input
+holds a value. A core that diverges (MuJoCo counted a bad position, velocity or acceleration) goes into
+``failed`` with the `PhysicsDivergedError` its own step raises; the others go on.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any
+
+import mujoco
+
+from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
+
+_step1, _step2, _step = mujoco.mj_step1, mujoco.mj_step2, mujoco.mj_step
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+
+
+def workers() -> int:
+    """How many threads step the physics: every core of the machine (``DYNABRAIN_LOCKSTEP_THREADS``
+    sets another count)."""
+    given = os.environ.get("DYNABRAIN_LOCKSTEP_THREADS", "").strip()
+    return max(1, int(given)) if given.isdigit() else os.cpu_count() or 1
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(max(1, workers() - 1), thread_name_prefix="dynabrain-physics")
+        return _POOL
+
+
+def _physics(jobs: Sequence[tuple[Any, Any, int]]) -> None:
+    """The physics of a slice of the cores: each one's tick as `MujocoCore.step` makes it."""
+    for m, d, extra in jobs:
+        _step2(m, d)
+        if extra:
+            _step(m, d, extra)
+        _step1(m, d)
+
+
+def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, BaseException]) -> None:
+    """Step the cores ``members`` (one per branch) one tick: see the module docstring."""
+    jobs: list[tuple[Any, Any, int]] = []
+    stepped: list[tuple[int, Any, Any]] = []  # (index, core, compiled scene) of those in ``jobs``
+    for k, core in enumerate(members):
+        s = core._compiled
+        if s.anim is not None or core._vel.tobytes() != core._vel_unset:
+            try:  # Python between the halves of its step: the core's own step, alone
+                core.step(t_ns, dt_ns)
+            except Exception as exc:  # this branch's failure
+                failed[k] = exc
+            continue
+        moves = core._moves
+        if moves is None or moves[0] is not s:
+            moves = core._moves = (s, *core._plan_moves(s))
+        for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls, wrenches
+            dst[di] = src if si is None else src[si]
+        jobs.append((s.model, s.data, core._nsub - 1))
+        stepped.append((k, core, s))
+    _run(jobs)
+    for k, core, s in stepped:
+        bad = s.bad_qpos.number + s.bad_qvel.number + s.bad_qacc.number
+        if bad != s.warnings_seen:
+            failed[k] = PhysicsDivergedError(core.name, "step", None, core._divergence(s, bad))
+            continue
+        for dst, di, src, si in core._moves[2]:  # the outputs that can change in a step
+            dst[di] = src if si is None else src[si]
+
+
+def _run(jobs: list[tuple[Any, Any, int]]) -> None:
+    """``jobs`` cut into one slice per thread, this thread stepping the last."""
+    threads = min(workers(), len(jobs))
+    if threads <= 1:
+        _physics(jobs)
+        return
+    size = -(-len(jobs) // threads)
+    slices = [jobs[i:i + size] for i in range(0, len(jobs), size)]
+    pool = _pool()
+    futures: list[Future[None]] = [pool.submit(_physics, part) for part in slices[:-1]]
+    try:
+        _physics(slices[-1])
+    finally:
+        for future in futures:
+            future.result()

@@ -1,0 +1,360 @@
+"""The ``lockstep`` backend: N branches of one world in this process, advanced tick by tick together.
+
+Each branch has a world of its own (a fork, kept from one batch to the next) in its start state with
+its parameters set; for the batch, every branch's modules are bound to one row of a stacked bus (an
+``(N, bus)`` array), so that a tick is the structure's schedule walked once for all N:
+
+- the inputs given per tick are written into each branch's row (one numpy assignment per input when
+  every branch is running);
+- each connection's copy is one copy across the rows (``bus[:, dst] = bus[:, src]``);
+- each module is stepped once for all branches through its class's `Module.step_batch`: the MuJoCo
+  core steps the N physics on threads with the GIL released (`modules.mujoco.batched`), the robot
+  modules that implement it compute all branches with numpy, and a module without it is stepped
+  branch by branch (the default `step_batch`);
+- the outputs are checked finite per branch, and the signals asked for recorded from the rows.
+
+A branch is `branch.run_branch` on its world, bit for bit: the same calls on the same states in the
+same order (each module's step, or its batched step, which makes each row what the member's own step
+makes), with the same time; the final state is exported from the branch's world, from its row of the
+bus and its modules' states. Nothing of history is kept while the branches run: a branch that fails (a
+module raised for it, its physics diverged, an output is not finite) leaves the lockstep at once and
+is run again alone, from its start, by `run_branch` on its world, so its failure, reason, tick, partial
+signals and rolled-back state are those of every other backend; the others go on.
+
+Branches are stepped together when their worlds have the same structure (modules, ports, periods,
+connections) at the same tick; branches that start from states of other structures or ticks (an edit
+inside a branch) are stepped in a lockstep group of their own, and a branch whose ticks run into one
+of the world's scheduled events is run alone by `run_branch` (events are not stepped in lockstep);
+`notes` says so for each batch (`BatchResult.notes`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..kernel.errors import DynabrainError
+from ..kernel.history import WorldState
+from ..kernel.module import Module
+from ..kernel.structure import SAVE_STATE
+from ..kernel.world import World
+from .branch import BranchOutcome, BranchStatus, BranchTask, run_branch
+
+_EACH = Module.step_batch.__func__  # type: ignore[attr-defined]  # the default: each member alone
+
+
+@dataclass
+class _Branch:
+    """A branch of a lockstep group: its task, its world (in its start state, parameters set), the
+    snapshot of that start, and its row of the group's bus."""
+
+    task: BranchTask
+    world: World
+    start: WorldState
+
+
+class LockstepBackend:
+    """The ``lockstep`` backend of `Batch` (see the module docstring). ``workers``: threads for the
+    physics (default: every core; `modules.mujoco.batched.workers`)."""
+
+    def __init__(self, world: World, workers: int | None = None):
+        self.world = world
+        self.size = workers or os.cpu_count() or 1
+        if workers is not None:
+            os.environ.setdefault("DYNABRAIN_LOCKSTEP_THREADS", str(workers))
+        self._scratch: World | None = None
+        self._forks: list[World] = []
+        self.notes: list[str] = []
+        """What the last batch did other than one lockstep over every branch (groups, branches run alone)."""
+        self.reran = 0
+        """Branches run again alone after they failed in lockstep (all batches)."""
+
+    def prepare(self) -> None:
+        """Make the private copy of the world the branches' worlds are forked from (read now: before a
+        batch runs on another thread)."""
+        if self._scratch is None:
+            self._scratch = self.world.fork(self.world.name)
+
+    def map(self, tasks: Sequence[BranchTask]) -> list[BranchOutcome]:
+        self.prepare()
+        assert self._scratch is not None
+        while len(self._forks) < len(tasks):
+            self._forks.append(self._scratch.fork(self.world.name))
+        self.notes = []
+        outcomes: dict[int, BranchOutcome] = {}
+        groups: dict[tuple, list[_Branch]] = {}
+        for task, world in zip(tasks, self._forks, strict=False):
+            try:
+                world.import_state(task.start)
+                for name, value in task.params.items():
+                    world.set(name, value)
+            except DynabrainError:  # refused: it fails as it would on any backend
+                outcomes[task.index] = run_branch(world, task)
+                continue
+            start = world.snapshot()
+            if any(start.tick <= t < start.tick + task.ticks for t in world.scheduled_ticks()):
+                self.notes.append(f"branch {task.index} runs into a scheduled event: run alone")
+                outcomes[task.index] = run_branch(world, task)
+                continue
+            groups.setdefault(_group_key(start), []).append(_Branch(task, world, start))
+        if len(groups) > 1:
+            self.notes.append(f"the branches start from {len(groups)} structures or ticks: stepped as "
+                              f"{len(groups)} lockstep groups of " + ", ".join(str(len(g)) for g in groups.values())
+                              + " branches")
+        for group in groups.values():
+            done, failed = _Lockstep(group, self.world.dt_ns).run()
+            outcomes.update(done)
+            for branch in failed:
+                self.reran += 1
+                outcomes[branch.task.index] = run_branch(branch.world, branch.task)
+            if failed:
+                self.notes.append(f"branch(es) {', '.join(str(b.task.index) for b in failed)} failed in lockstep: "
+                                  "run again alone, from their start")
+        return [outcomes[t.index] for t in tasks]
+
+    def close(self) -> None:
+        for world in self._forks:
+            world.close()
+        self._forks = []
+        if self._scratch is not None:
+            self._scratch.close()
+            self._scratch = None
+
+
+def _group_key(start: WorldState) -> tuple:
+    """What branches must share to be stepped together: the layout of the bus (shared by a world and
+    its forks), the connections, each module's class, period and phase, and the tick."""
+    structure = start.structure
+    return (id(structure.layout), structure.connections, start.tick,
+            tuple((type(r.module), r.period_ns, r.phase) for r in structure.records))
+
+
+@dataclass
+class _Entry:
+    """One module of the schedule, for the whole group: its dispatch entry (of the first branch: the
+    copies and timing are the same in each), its N members, whether its class has a batched step,
+    and where its inputs and outputs lie on a row."""
+
+    name: str
+    period_ns: int
+    period_ticks: int
+    phase: int
+    copies: Any
+    gather: Any
+    members: list[Module]
+    step_batch: Any
+    batched: bool
+    inputs: slice
+    outputs: slice
+    ports: str
+
+
+class _Lockstep:
+    """One group of branches stepped together (see the module docstring)."""
+
+    def __init__(self, branches: list[_Branch], dt_ns: int):
+        self.branches, self.dt_ns = branches, dt_ns
+        self.structure = branches[0].start.structure
+        layout = self.structure.layout
+        self.bus = np.empty((len(branches), layout.size))
+        for row, branch in enumerate(branches):
+            self.bus[row] = branch.start.bus
+        self.ro = self.bus.view()
+        self.ro.flags.writeable = False
+        self.lengths = np.array([b.task.ticks for b in branches])
+
+    # -- binding the branches' modules to their rows ---------------------------------------------------------
+    def _bind(self) -> list[tuple[Module, Any]]:
+        layout, kept = self.structure.layout, []
+        for row, branch in enumerate(self.branches):
+            for rec in branch.start.structure.records:
+                old = rec.module.binding
+                rec.module.bind_ports(layout.modules[rec.name].binding(
+                    self.bus[row], self.ro[row], old.param_changed if old is not None else None))
+                kept.append((rec.module, old))
+                rec.module.bind()
+        return kept
+
+    @staticmethod
+    def _unbind(kept: list[tuple[Module, Any]]) -> None:
+        for module, old in kept:
+            module.bind_ports(old)
+            module.bind()
+
+    def _entries(self) -> list[_Entry]:
+        layout, out = self.structure.layout, []
+        for i, entry in enumerate(self.structure.dispatch):
+            members = [b.start.structure.records[self._record_index(entry.name)].module for b in self.branches]
+            cls = type(members[0])
+            slots = layout.modules[entry.name]
+            rec = self.structure.records[self._record_index(entry.name)]
+            ports = ", ".join(f"{p.name} {p.shape}" for p in rec.outputs if p.view_of is None)
+            assert all(b.start.structure.dispatch[i].name == entry.name for b in self.branches)
+            out.append(_Entry(entry.name, entry.period_ns, entry.period_ticks, entry.phase, entry.copies,
+                              entry.gather, members, cls.step_batch, cls.step_batch.__func__ is not _EACH,
+                              slots.inputs_flat or slice(0, 0), slots.outputs_flat or slice(0, 0), ports))
+        return out
+
+    def _record_index(self, name: str) -> int:
+        index = getattr(self, "_index", None)
+        if index is None:
+            index = self._index = {rec.name: k for k, rec in enumerate(self.structure.records)}
+        return index[name]
+
+    # -- what goes in and what comes out ---------------------------------------------------------------------
+    def _slot(self, name: str, settable: bool) -> tuple[int, int, tuple[int, ...]]:
+        world = self.branches[0].world
+        full = world.settable(name) if settable else name
+        slots = self.structure.layout.slots
+        slot = slots.get(full) if isinstance(full, str) else None
+        if slot is None and world.core is not None:
+            slot = slots.get(f"{world.core.name}.{name}")
+        if slot is None:
+            raise DynabrainError(f"batch backend 'lockstep': no signal {name!r}")
+        return slot.start, slot.size, slot.shape
+
+    def _inputs(self, longest: int) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+        """Per input port: (start, stop, the row of its values for each branch or -1, values stacked
+        ``(branches that drive it, longest, size)``)."""
+        names = list(dict.fromkeys(n for b in self.branches for n in b.task.inputs))
+        out = []
+        for name in names:
+            at, size, _ = self._slot(name, settable=True)
+            rows = [r for r, b in enumerate(self.branches) if name in b.task.inputs]
+            where = np.full(len(self.branches), -1)
+            where[rows] = np.arange(len(rows))
+            values = np.zeros((len(rows), longest, size))
+            for k, r in enumerate(rows):
+                given = np.asarray(self.branches[r].task.inputs[name], dtype=np.float64).reshape(-1, size)
+                values[k, :len(given)] = given
+            out.append((at, at + size, where, values))
+        return out
+
+    def _records(self, longest: int) -> dict[str, tuple[int, int, tuple[int, ...], np.ndarray]]:
+        names = list(dict.fromkeys(n for b in self.branches for n in b.task.record))
+        out = {}
+        for name in names:
+            at, size, shape = self._slot(name, settable=False)
+            out[name] = (at, at + size, shape, np.full((len(self.branches), longest, size), np.nan))
+        return out
+
+    # -- the ticks ---------------------------------------------------------------------------------------------
+    def run(self) -> tuple[dict[int, BranchOutcome], list[_Branch]]:
+        """Step every branch its ticks; (the outcomes of those that ended well, those that failed)."""
+        longest = int(self.lengths.max())
+        inputs, records = self._inputs(longest), self._records(longest)
+        kept = self._bind()
+        try:
+            entries = self._entries()
+            finals, failed = self._ticks(entries, inputs, records, longest)
+        finally:
+            self._unbind(kept)
+        done = {}
+        for row, (bus, states) in finals.items():
+            done[self.branches[row].task.index] = self._outcome(row, bus, states, records)
+        return done, [self.branches[r] for r in sorted(failed)]
+
+    def _ticks(self, entries: list[_Entry], inputs: list, records: dict, longest: int) -> tuple[dict, set[int]]:
+        bus, structure = self.bus, self.structure
+        count = len(self.branches)
+        active = np.arange(count)
+        failed: set[int] = set()
+        finals: dict[int, tuple[np.ndarray, tuple]] = {}
+        spans = structure.output_check.spans
+        tick0 = self.branches[0].start.tick
+        with np.errstate(all="ignore"):  # a failing branch's values are not looked at
+            for k in range(longest):
+                n = tick0 + k
+                t_ns = n * self.dt_ns
+                every = len(active) == count
+                for a, b, where, values in inputs:
+                    if every and where[0] >= 0 and len(values) == count:
+                        bus[:, a:b] = values[:, k]
+                    else:
+                        rows = active[where[active] >= 0]
+                        bus[rows, a:b] = values[where[rows], k]
+                for dst, src in structure.delayed:
+                    bus[:, dst] = bus[:, src]
+                for dst, src in structure.delayed_gather:
+                    bus[:, dst] = bus[:, src]
+                for e in entries:
+                    if (n - e.phase) % e.period_ticks:
+                        continue
+                    for dst, src in e.copies:
+                        bus[:, dst] = bus[:, src]
+                    for dst, src in e.gather:
+                        bus[:, dst] = bus[:, src]
+                    bad: dict[int, BaseException] = {}
+                    self._step(e, active, every, t_ns, bad)
+                    if bad:
+                        gone = active[sorted(bad)]
+                        failed.update(int(r) for r in gone)
+                        active = np.setdiff1d(active, gone)
+                        every = False
+                if spans and len(active):
+                    total = sum(bus[active, a:b].sum(axis=1) for a, b in spans)
+                    finite = np.isfinite(total)
+                    if not finite.all():
+                        failed.update(int(r) for r in active[~finite])
+                        active = active[finite]
+                for a, b, _shape, out in records.values():
+                    out[active, k] = bus[active, a:b]
+                ending = active[self.lengths[active] == k + 1]
+                for row in ending:
+                    finals[int(row)] = (bus[row].copy(), self._states(int(row)))
+                active = active[self.lengths[active] > k + 1]
+                if not len(active):
+                    break
+        return finals, failed
+
+    def _step(self, e: _Entry, active: np.ndarray, every: bool, t_ns: int, bad: dict[int, BaseException]) -> None:
+        """Step module ``e`` of the running branches (``active``; ``every``: all of them), once for all
+        through its class's batched step, or branch by branch; their failures into ``bad`` (by position
+        in ``active``)."""
+        members = e.members if every else [e.members[r] for r in active]
+        if not e.batched:
+            for k, member in enumerate(members):
+                try:
+                    member.step(t_ns, e.period_ns)
+                except Exception as exc:  # this branch fails; it is run again alone
+                    bad[k] = exc
+            return
+        if every:
+            inp, out = self.ro[:, e.inputs], self.ro[:, e.outputs]
+        else:
+            inp, out = self.ro[active, e.inputs], self.ro[active, e.outputs]
+        new = e.step_batch(members, t_ns, e.period_ns, inp, out, bad)
+        if new is None:
+            return
+        if not isinstance(new, np.ndarray) or new.shape != out.shape:
+            raise DynabrainError(
+                f"module {e.name!r} ({type(members[0]).__name__}): its step_batch returned "
+                f"{type(new).__name__ if not isinstance(new, np.ndarray) else f'shape {new.shape}'}; its outputs "
+                f"({e.ports}) for {len(members)} branches need an array of shape {out.shape}")
+        if every:
+            self.bus[:, e.outputs] = new
+        else:
+            self.bus[active, e.outputs] = new
+
+    # -- the end of a branch --------------------------------------------------------------------------------------
+    def _states(self, row: int) -> tuple:
+        """Branch ``row``'s modules' states now, as its world's history would save them."""
+        start = self.branches[row].start
+        return tuple(rec.module.get_state() if kind == SAVE_STATE else saved
+                     for rec, kind, saved in zip(start.structure.records, start.structure.saves, start.states,
+                                                 strict=True))
+
+    def _outcome(self, row: int, bus: np.ndarray, states: tuple, records: dict) -> BranchOutcome:
+        branch = self.branches[row]
+        task, start = branch.task, branch.start
+        state = None
+        if task.keep_state:
+            final = WorldState(start.world_id, start.tick + task.ticks, start.structure, bus, states, start.params)
+            state = branch.world.export_state(final)
+        signals = {name: records[name][3][row, :task.ticks].reshape(task.ticks, *records[name][2])
+                   for name in task.record}
+        return BranchOutcome(task.index, signals, state, BranchStatus(True, ticks_done=task.ticks))

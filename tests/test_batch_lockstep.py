@@ -1,0 +1,175 @@
+"""The ``lockstep`` batch backend (issue 25): every branch in one process, advanced tick by tick together,
+each module stepped once for all branches (`Module.step_batch`). Each branch is checked bit for bit
+against the same branch stepped alone on a copy of the world: the humanoid with its modules, with
+per-branch starts, parameters, inputs and lengths, and a branch that diverges; a module of the user's
+without a batched step; one that raises for one branch; a batched step that returns the wrong shape;
+branches that start from worlds of other structures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_batch import bits, same_state
+
+from dynabrain.modules.basic import Counter
+from dynabrain.orchestrator import Batch, DynabrainError, Module, Port, load_world
+from dynabrain.orchestrator.kernel.module import Param
+
+ROOT = Path(__file__).resolve().parents[1]
+HUMANOID = ROOT / "scenarios" / "humanoid_stand.yaml"
+RECORD = ("core.pelvis.pos", "zmp.zmp", "servo.tau", "lfoot.force", "imu.acc")
+
+
+@pytest.fixture(scope="module")
+def humanoid():
+    world = load_world(HUMANOID)
+    world.tick(25)
+    yield world
+    world.close()
+
+
+def alone(world, start: bytes, ticks: int, inputs: dict, params: dict, record=RECORD):
+    """The branch stepped alone on a copy of the world, by the World API: (signals, final state), or
+    the ModuleError it failed with."""
+    twin = world.fork()
+    try:
+        twin.import_state(start)
+        for name, value in params.items():
+            twin.set(name, value)
+        try:
+            return twin.run(ticks, inputs=inputs, record=record), twin.export_state()
+        except DynabrainError as err:
+            return err, twin.export_state()
+    finally:
+        twin.close()
+
+
+def check_against_alone(world, result, starts, lengths, inputs, params, record=RECORD) -> None:
+    for b, ticks in enumerate(lengths):
+        ref, final = alone(world, starts[b], ticks, {n: v[b][:ticks] for n, v in inputs.items()},
+                           {n: v[b] for n, v in params.items()}, record)
+        status = result.status[b]
+        if isinstance(ref, Exception):
+            assert not status.ok and status.reason == str(ref) and status.failed_tick == ref.tick, b
+            assert status.ticks_done == ref.ticks_done, b
+            ref = ref.recorded
+        else:
+            assert status.ok and status.ticks_done == ticks, (b, status)
+        assert same_state(result.states[b], final), b
+        for name in record:
+            assert bits(result.branch(name, b)) == bits(ref[name]), (b, name)
+
+
+def test_the_humanoid_with_its_modules_equals_each_branch_alone(humanoid):
+    """Two starts, per-branch friction, servo gains and lag, per-tick servo offsets, branches of
+    different lengths, and one that diverges (an absurd gravity): each branch as it is alone."""
+    first = humanoid.export_state()
+    humanoid.tick(3)
+    second = humanoid.export_state()
+    humanoid.backtick(3)
+    lengths = [30, 30, 12, 30, 21]
+    starts = [first, second, first, first, second]
+    q_ref = np.zeros((5, 30, 23))
+    for b in range(5):
+        q_ref[b, :, :2] = 0.04 * (b - 2) * np.linspace(0, 1, 30)[:, None]
+    params = {"core.friction": [0.6, 0.9, 1.2, 1.0, 0.8], "servo.kp": [40.0, 40.0, 55.0, 40.0, 40.0],
+              "servo.lag": [0.0, 0.01, 0.0, 0.0, 0.004],
+              "core.gravity": [[0, 0, -9.81], [0, 0, -9.81], [0, 0, -9.81], [0, 0, -1e12], [0, 0, -9.81]]}
+    with Batch(humanoid, backend="lockstep") as batch:
+        result = batch.run(lengths, starts=starts, inputs={"servo.q_ref": q_ref}, params=params, record=RECORD)
+        assert result.backend == "lockstep" and result.failed == [3]
+        assert "core" in result.status[3].reason
+        check_against_alone(humanoid, result, starts, lengths, {"servo.q_ref": list(q_ref)},
+                            {k: list(v) for k, v in params.items()})
+        # a second batch on the same backend starts from the first's final states
+        again = batch.run(10, starts=[result.states[0], result.states[1]], record=RECORD)
+        assert again.ok
+        check_against_alone(humanoid, again, [result.states[0], result.states[1]], [10, 10], {}, {})
+
+
+class Kick(Module):
+    """A user's module, no batched step: leans the first joint by 0.2 rad after ``at`` ticks of its own;
+    ``fail_at`` > 0 raises at that tick (a module that fails for one branch)."""
+
+    PARAMS = (Param("at", 5, runtime=True), Param("fail_at", 0, runtime=True))
+
+    def outputs(self):
+        return [Port("lean", (23,), "rad")]
+
+    def start(self, t_ns):
+        self.count = 0
+        self.out["lean"][...] = 0.0
+
+    def step(self, t_ns, dt_ns):
+        self.count += 1
+        if self._param_values["fail_at"] and self.count >= self._param_values["fail_at"]:
+            raise RuntimeError(f"kick refused at count {self.count}")
+        self.out["lean"][...] = 0.0
+        self.out["lean"][0] = 0.2 if self.count >= self._param_values["at"] else 0.0
+
+    def get_state(self):
+        return self.count
+
+    def set_state(self, state):
+        self.count = state
+
+
+class BadShape(Kick):
+    """A batched step that returns one value too few per branch."""
+
+    @classmethod
+    def step_batch(cls, members, t_ns, dt_ns, inp, out, failed):
+        return np.zeros((len(members), out.shape[1] - 1))
+
+
+def kicked_world(cls=Kick):
+    world = load_world(HUMANOID)
+    world.add_module(cls("kick"), connect=[("kick.lean", "servo.q_ref")])
+    world.tick(5)
+    return world
+
+
+def test_a_user_module_without_a_batched_step_and_one_that_raises_for_one_branch():
+    world = kicked_world()
+    try:
+        start = world.export_state()
+        params = {"kick.at": [3, 8, 12], "kick.fail_at": [0, 6, 0]}
+        record = ("core.pelvis.pos", "servo.tau", "kick.lean")
+        with Batch(world, backend="lockstep") as batch:
+            result = batch.run(15, branches=3, params=params, record=record)
+        assert result.failed == [1] and "kick refused at count 6" in result.status[1].reason
+        assert "kick" in result.status[1].reason
+        check_against_alone(world, result, [start] * 3, [15] * 3, {}, params, record)
+    finally:
+        world.close()
+
+
+def test_a_batched_step_of_the_wrong_shape_is_an_error_naming_module_and_port():
+    world = kicked_world(BadShape)
+    try:
+        with Batch(world, backend="lockstep") as batch:
+            with pytest.raises(DynabrainError, match=r"module 'kick' \(BadShape\).*lean \(23,\).*shape \(2, 23\)"):
+                batch.run(5, branches=2)
+            assert world.tick_count == 5
+    finally:
+        world.close()
+
+
+def test_branches_from_worlds_of_other_structures_are_stepped_in_groups_of_their_own(humanoid):
+    """A module added in one start's world (a dynabrain module: the branch's world makes it on import)."""
+    plain = humanoid.export_state()
+    twin = humanoid.fork()
+    try:
+        twin.add_module(Counter("count"))
+        twin.tick(2)
+        counted = twin.export_state()
+    finally:
+        twin.close()
+    starts = [plain, counted, plain]
+    record = ("core.pelvis.pos", "servo.tau")
+    with Batch(humanoid, backend="lockstep") as batch:
+        result = batch.run(8, starts=starts, record=record)
+    assert result.ok and any("2 lockstep groups" in note for note in result.notes)
+    check_against_alone(humanoid, result, starts, [8] * 3, {}, {}, record)
