@@ -62,10 +62,11 @@ TARGET = np.array([0.16, 0.10])
 """The target's centre on the table, in the brain's model of its room."""
 EYES = {"targets": ["eye"], "width": 320, "height": 240, "baseline": 0.06, "num_disparities": 128}
 """The head's stereo camera: 320 x 240 eyes 6 cm apart, about 15 cm above the stack while it looks."""
-EYES_ON, LOOK = 560, 660
-"""Ticks: the eyes open during the bow (the servo program's look: 1.0-1.4 s), and the pair is read."""
-PLAN_AT = 1160
-"""The tick the brain plans from: the kid is back in its crouch (2 s) and the added blocks have settled."""
+EYES_ON, LOOK = 880, 980
+"""Ticks: the eyes open while the kid bows over the table (the servo program holds the bow 1.7-2.1 s),
+and the pair is read."""
+PLAN_AT = 1450
+"""The tick the brain plans from: the kid is back in its crouch (2.7 s), the added blocks have settled."""
 SETTLE_S = 0.3
 """Watched after a push's motion ends: the blocks come to rest."""
 DIRECTIONS = ("left", "right")

@@ -8,8 +8,9 @@ core, the robot's configuration. Five keyframes, each solved by whole-body inver
 soles, the joint ranges kept), each chained from the last:
 
 1. *above*: the hand's tip over the contact point, clear of the stack;
-2. *lower*: the tip beside the block, just above the block's bottom (`TIP_ABOVE_BOTTOM_M`), on the side
-   the push comes from;
+2. *lower*: the tip beside the block, on the side the push comes from, just above the block's bottom:
+   a block taller than the hand is pushed low (`TIP_LOW_M`: the hand's top stays under what stands on
+   it), a shorter one a little higher (`TIP_ABOVE_BOTTOM_M`: clear of the block it stands on);
 3. *push*: the tip moved ``PUSH_M`` in the direction, through the block (contact physics moves it; the
    block takes no input);
 4. *lift*: the tip up again where the push ended;
@@ -60,8 +61,15 @@ PUSH_M = 0.075
 STANDOFF_M = 0.036
 """The tip's distance from the block's face before the push: the hand's half width (2 cm) and 16 mm to spare
 (a hand lowered onto the block's edge instead of beside it lands on it, and the robot tips over)."""
-TIP_ABOVE_BOTTOM_M = 0.008
-"""The tip's height over the pushed block's bottom: low on its side, clear of what is under it."""
+HAND_M = 0.05
+"""The hand's length from its tip (kid.xml: a 5 cm box above the tip)."""
+TIP_LOW_M = 0.005
+"""The tip's height over the bottom of a block taller than the hand (by `TIP_LOW_M` and more)."""
+TIP_ABOVE_BOTTOM_M = 0.012
+"""The tip's height over the bottom of a shorter block: the hand may lean, and its lower corner dips."""
+FREE_HAND = {"l_hand_tip": (0.0, 0.13, 0.27), "r_hand_tip": (0.0, -0.13, 0.27)}
+"""Where the other hand's tip is held while one pushes (world frame, m): beside the hip, back from the
+table (left to the posture alone, it hangs forward and hits the table's edge as the body leans)."""
 CLEAR_M = 0.06
 """The *above* keyframe: this much over the pushed block's top (over the stack's top too)."""
 DURATIONS = {"slow": (0.4, 0.3, 0.6, 0.25, 0.4), "fast": (0.4, 0.3, 0.12, 0.25, 0.4)}
@@ -163,10 +171,11 @@ class HandPush(Module):
     def keyframes(self, command: PushCommand) -> tuple[list[dict[str, Any]], int]:
         """The servo sequence of a push from the state now, and the first keyframe not reached (0: none)."""
         hand, points = self.tip_path(command)
+        free = next(Target(h, pos=p) for h, p in FREE_HAND.items() if h != hand)
         solver = self._whole_body()
         steps, start = [], None
         for i, (point, seconds) in enumerate(zip(points, DURATIONS[command.speed], strict=False)):
-            result = solver.solve([Target(hand, pos=point)], start=start)
+            result = solver.solve([Target(hand, pos=point), free], start=start)
             if not result.reached:
                 return [], i + 1
             steps.append(result.step(f"{seconds}s"))
@@ -189,7 +198,7 @@ class HandPush(Module):
         side = centre[1] if command.direction == "away" else -direction[1]
         hand = "l_hand_tip" if side > 0 else "r_hand_tip"
         lower = centre - direction * (reach + STANDOFF_M)
-        lower[2] = bottom + TIP_ABOVE_BOTTOM_M
+        lower[2] = bottom + (TIP_LOW_M if top - bottom >= HAND_M + 2 * TIP_LOW_M else TIP_ABOVE_BOTTOM_M)
         pushed = lower + direction * PUSH_M
         above, lift = lower.copy(), pushed.copy()
         above[2] = lift[2] = top + CLEAR_M
