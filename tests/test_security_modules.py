@@ -20,7 +20,7 @@ from dynabrain.bridge.calls import WorldService
 from dynabrain.bridge.testing import ServerProcess
 from dynabrain.orchestrator.cli.main import app
 from dynabrain.orchestrator.kernel import plugins
-from dynabrain.orchestrator.kernel.errors import DynabrainError
+from dynabrain.orchestrator.kernel.errors import DynabrainError, ScenarioError
 from dynabrain.orchestrator.kernel.module import Module, Port
 from dynabrain.orchestrator.logs.logger import McapLogger
 from dynabrain.orchestrator.logs.scan import LogError
@@ -197,3 +197,36 @@ def test_verify_makes_a_logs_modules_under_the_scenario_rules(trap, tmp_path):
     result = runner.invoke(app, ["replay", str(log), "--verify"])
     assert result.exit_code == 2 and "--allow-python trap_pkg" in " ".join(result.output.split())
     assert not trap.exists()
+
+
+LOGGED = """\
+name: logged
+world: {step: 2ms, duration: 20ms, core: null}
+modules:
+  - {name: k, python: "sec_log_local:Local"}
+"""
+
+
+def test_a_logs_local_module_is_made_only_where_its_scenario_still_is(tmp_path):
+    """A log names the folder of its scenario; that folder's modules count as the scenario's own only while
+    the scenario file is there, as recorded (else a log could make any folder's modules "local")."""
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    marker = tmp_path / "imported.txt"
+    (folder / "sec_log_local.py").write_text(TRAP.format(marker=str(marker), name="local") + LOCAL)
+    (folder / "s.yaml").write_text(LOGGED)
+    try:
+        sc = load_scenario(folder / "s.yaml")
+        world = sc.build()
+        McapLogger(tmp_path / "run.mcap", window=0).attach(world, sc)
+        world.tick(5)
+        world.close()
+        sys.modules.pop("sec_log_local", None)
+        assert verify(tmp_path / "run.mcap").ok and marker.read_text() == "local ran\nlocal ran\n"
+        sys.modules.pop("sec_log_local", None)
+        (folder / "s.yaml").write_text(LOGGED + "# changed since\n")
+        with pytest.raises(ScenarioError, match=r"'sec_log_local:Local' is not allowed"):
+            verify(tmp_path / "run.mcap")
+        assert marker.read_text() == "local ran\nlocal ran\n"
+    finally:
+        sys.modules.pop("sec_log_local", None)

@@ -37,8 +37,10 @@ import numpy as np
 from ..kernel.bodies import BodySpecError, body_from_detail
 from ..kernel.errors import DynabrainError, ModuleError, ScenarioError
 from ..kernel.observers import WorldView
+from ..kernel.yamlsrc import MAX_FILE_BYTES
 from ..scenario.make import ModuleSpecError, make_module
 from ..scenario.model import load_scenario
+from ..scenario.modelfile import ModelFileError, regular_file
 from .meta import RunInfo, versions
 from .read import BusRow, LogIndex, iter_bus, read_index
 from .scan import LogError
@@ -115,7 +117,7 @@ def verify(path: str | os.PathLike[str], *, allow_python: Sequence[str] = (),
     stated = check_versions(info, path, allow_version_mismatch)
     world = rebuild(info, path, allow_python)
     try:
-        result = _Replay(world, index, path, info.scenario_dir or ".", allow_python).run()
+        result = _Replay(world, index, path, info.scenario_dir or ".").run()
     finally:
         world.close()
     return dataclasses.replace(result, versions=stated)
@@ -159,16 +161,27 @@ def rebuild(info: RunInfo, log_path: str, allow_python: Sequence[str] = ()) -> A
         except ScenarioError as exc:
             raise ScenarioError([dataclasses.replace(p, file=label) for p in exc.problems]) from None
     sc.path = os.path.join(info.scenario_dir, os.path.basename(original)) if info.scenario_dir else original
+    sc.local_modules = _still_there(original, info.scenario_text or "")
     sc.source.file = label
     if info.duration_ns is not None:
         sc.duration_ns = info.duration_ns
     return sc.build(seed=info.seed, history=info.history)
 
 
+def _still_there(original: str, text: str) -> bool:
+    """Whether the recorded scenario file is where the log says, holding what the log recorded: only then
+    are the modules of its folder the scenario's own (a log may claim any folder)."""
+    try:
+        size = regular_file(original, "the recorded scenario", MAX_FILE_BYTES)
+        with open(original, encoding="utf-8-sig", newline="") as fh:
+            return size <= MAX_FILE_BYTES and fh.read(MAX_FILE_BYTES + 1) == text
+    except (ModelFileError, OSError, UnicodeDecodeError):
+        return False
+
+
 class _Replay:
-    def __init__(self, world: Any, index: LogIndex, path: str, base_dir: str, allow_python: Sequence[str] = ()):
+    def __init__(self, world: Any, index: LogIndex, path: str, base_dir: str):
         self.world, self.view, self.index, self.base_dir = world, WorldView(world), index, base_dir
-        self.allow_python = tuple(allow_python)
         self.gaps: list[tuple[int, int]] = []
         self._rows: Iterator = iter_bus(path, index, produced=True)
         self._peeked: BusRow | None = None
@@ -287,7 +300,7 @@ class _Replay:
             self._rollback(detail)
         else:
             try:
-                apply_edit(self.world, kind, detail, self.base_dir, self.allow_python)
+                apply_edit(self.world, kind, detail, self.base_dir)
             except LogError:
                 raise
             except DynabrainError as exc:
@@ -339,16 +352,20 @@ def _checked(event: dict, path: str) -> dict:
     return event
 
 
-def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".", allow_python: Sequence[str] = ()) -> None:
-    """Make a recorded edit again (an event of kind ``kind`` with detail ``d``); a module's FMU path is
-    relative to ``base_dir`` (the recorded scenario's folder), its class allowed as a scenario's is."""
+def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".") -> None:
+    """Make a recorded edit again (an event of kind ``kind`` with detail ``d``). A module is made by the
+    world's ``module_factory`` (under the rules its scenario was loaded with: `rebuild`), else by
+    `make_module` with no more than dynabrain's own and the registered classes; an FMU's path is
+    relative to ``base_dir`` (the recorded scenario's folder)."""
     if kind == "module_added":
         spec = d["spec"]
         if not isinstance(spec, dict):
             raise LogError(f"the recording adds a module at tick {world.tick_count} whose spec is damaged: "
                            f"{spec!r:.80}")
         try:
-            module = make_module(spec, base_dir=base_dir, allow_python=allow_python)
+            factory = getattr(world, "module_factory", None)
+            module = factory(spec) if factory is not None else make_module(spec, base_dir=base_dir,
+                                                                            local_modules=False)
         except ModuleSpecError as exc:  # nothing to compare with: the recording cannot be replayed here
             raise LogError(f"the recording adds module {spec.get('name')!r} at tick {world.tick_count}, which "
                            f"cannot be made here: {exc}") from None

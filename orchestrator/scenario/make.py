@@ -41,13 +41,15 @@ class ModuleNotAllowedError(ModuleSpecError):
         self.python, self.allowed = python, tuple(allowed)
 
 
-def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".", allow_python: Sequence[str] = ()) -> Module:
+def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".", allow_python: Sequence[str] = (),
+                local_modules: bool = True) -> Module:
     """The module ``spec`` describes, constructed (not yet added to a world).
 
     ``base_dir``: the folder an FMU path is relative to (the scenario's); a ``python:`` class in a
-    module of that folder is allowed (the scenario's own). ``allow_python``: the packages (or
-    ``fnmatch`` patterns on the class path) the user allowed besides dynabrain's own and the
-    registered classes (`plugins.ClassPolicy`); any other class is refused before it is imported.
+    module of that folder is allowed (the scenario's own) unless ``local_modules`` is false.
+    ``allow_python``: the packages (or ``fnmatch`` patterns on the class path) the user allowed
+    besides dynabrain's own and the registered classes (`plugins.ClassPolicy`); any other class is
+    refused before it is imported.
     Raises `ModuleSpecError` naming the field at fault.
     """
     get = spec.get if isinstance(spec, Mapping) else (lambda key, default=None: getattr(spec, key, default))
@@ -69,7 +71,7 @@ def make_module(spec: Mapping[str, Any] | Any, *, base_dir: str = ".", allow_pyt
         if given:
             raise ModuleSpecError(f"{key} applies to an FMU module (`fmu:`), not to a Python class", key)
     try:
-        cls = resolve_module_class(python, ClassPolicy.of(allow_python, [base_dir]))
+        cls = resolve_module_class(python, ClassPolicy.of(allow_python, [base_dir] if local_modules else []))
     except ClassNotAllowedError as exc:
         raise ModuleNotAllowedError(python, allow_python, str(exc)) from None
     except DynabrainError as exc:

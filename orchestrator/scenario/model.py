@@ -138,6 +138,9 @@ class Scenario:
     allow_python: tuple[str, ...] = ()
     """Packages whose module classes the user allowed (``--allow-python``) besides dynabrain's own, the
     registered ones and the scenario folder's own modules (`plugins.ClassPolicy`)."""
+    local_modules: bool = True
+    """Whether modules in the scenario's folder may be named (`replay --verify` allows them only when the
+    recorded scenario is still there, as recorded: a log's claim of a folder is not enough)."""
 
     @property
     def dir(self) -> str:
@@ -152,7 +155,8 @@ class Scenario:
         if problems:
             world.close()
             raise ScenarioError(problems)
-        world.module_factory = functools.partial(make_module, base_dir=self.dir, allow_python=self.allow_python)
+        world.module_factory = functools.partial(make_module, base_dir=self.dir, allow_python=self.allow_python,
+                                                 local_modules=self.local_modules)
         world.rebuild = functools.partial(load_world, os.path.abspath(self.path), allow_python=self.allow_python,
                                           **overrides)
         return world
@@ -443,7 +447,7 @@ class _Builder:
             update["start_time"] = start  # the world's start time, for an FMU that gives none of its own
         try:
             module = make_module(cfg.model_copy(update=update) if update else cfg, base_dir=self.sc.dir,
-                                 allow_python=self.sc.allow_python)
+                                 allow_python=self.sc.allow_python, local_modules=self.sc.local_modules)
         except ModuleSpecError as exc:
             self.report(path if exc.field is None else (*path, exc.field), str(exc))
             return None
@@ -465,7 +469,8 @@ class _Builder:
         if cfg.python is None or cfg.fmu is not None:
             return None
         try:  # (a class the policy refuses is not imported: make_module says why)
-            cls = resolve_module_class(cfg.python, ClassPolicy.of(self.sc.allow_python, [self.sc.dir]))
+            folders = [self.sc.dir] if self.sc.local_modules else []
+            cls = resolve_module_class(cfg.python, ClassPolicy.of(self.sc.allow_python, folders))
             specs = cls.param_specs() if isinstance(cls, type) and issubclass(cls, Module) else None
         except Exception:  # make_module reports a class it cannot find or use
             return None
