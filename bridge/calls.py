@@ -294,7 +294,8 @@ class WorldService:
         except DynabrainError as exc:
             raise ValueRefusedError(str(exc)) from None
         try:
-            return make_module(spec, base_dir=self.base_dir or ".", allow_python=self.allow_python)
+            return make_module(spec, base_dir=self.base_dir or ".", allow_python=self.allow_python,
+                               local_modules=self.base_dir is not None)  # (the scenario's folder, not the cwd)
         except ModuleNotAllowedError as exc:  # (refused before anything was imported)
             raise DynabrainError(f"add_module {spec.name!r}: {exc}; not allowed on this server (allowed besides "
                                  f"dynabrain's own and the registered: {', '.join(exc.allowed) or 'none'}; see "
