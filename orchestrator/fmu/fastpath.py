@@ -33,7 +33,8 @@ _log = logging.getLogger("dynabrain.fmu")
 CALLS = {1: {1: "fmiSetReal", 2: "fmiDoStep", 3: "fmiGetReal", 4: "fmiGetFMUstate"},
          2: {1: "fmi2SetReal", 2: "fmi2DoStep", 3: "fmi2GetReal", 4: "fmi2GetFMUstate"},
          3: {1: "fmi3SetFloat64", 2: "fmi3DoStep", 3: "fmi3GetFloat64", 4: "fmi3GetFMUState"}}
-TERMINATE, EARLY_RETURN, NONFINITE = 6, 7, 8
+TERMINATE, EARLY_RETURN, NONFINITE, ENDED = 6, 7, 8, 9
+"""Step codes beyond the FMI statuses; ENDED: the step is done (outputs, state) and asked to end."""
 
 
 class Plan(ctypes.Structure):
@@ -176,7 +177,7 @@ class Stepper:
             if status == 1 and not warn:
                 warn = (call << 4) | 1
             if call == 2 and self.version == 3 and self._flags[1]:
-                return (2 << 4) | TERMINATE
+                warn = (2 << 4) | ENDED  # kept: outputs and state are taken, then the end is asked
         total = sum(self._outs)  # a sum is NaN or infinite when a value is (or when it overflows: then look)
         if not -1e309 < total < 1e309 and not np.isfinite(self._keep[1][:p.n_out]).all():
             return (3 << 4) | NONFINITE

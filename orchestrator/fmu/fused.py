@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .fastpath import group_helper
+from .fastpath import ENDED, group_helper
 from .states import SerializedFMUState
 
 if TYPE_CHECKING:
@@ -228,8 +228,8 @@ class FusedFMUs:
             self.pool.free.append(row)
         for i, m in enumerate(self.members):
             code = int(codes[i])
-            if code & 15 == 1:
-                m._session.failed(code, -1, t_ns)
+            if code & 15 in (1, ENDED):  # a warning; a step that stands and asks to end (the member says so)
+                m._failed(code, -1, t_ns)
             elif code:
                 self.failing = m.name
                 m._failed(code, -1, t_ns)  # raises

@@ -369,12 +369,12 @@ class IsolatedFMUModule(FMUModuleBase):
     def set_state(self, state: Any) -> None:
         if not isinstance(state, SerializedFMUState):
             raise FMUError(f"module {self.name!r}: {state!r} is not a state of an isolated FMU")
-        self._state = state
+        current, self._state = self._state, state
         if self._child is None:
             self._pending = state
             return
-        try:
-            self._request("set_state", state.token, state.data, self._outputs_now())
+        try:  # (the current state again: a request to end the simulation made in its step stands)
+            self._request("set_state", state.token, state.data, self._outputs_now(), state is current)
         except DynabrainError as exc:  # the world is rolling back: never leave it half done
             if self._child is not None:
                 self._drop_child()

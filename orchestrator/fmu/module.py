@@ -228,11 +228,15 @@ class FMUModule(FMUModuleBase):
         session.bind(in_values, out_values)
         self._views = (self.inp, self.out)  # the session holds addresses into these buffers
         self._fn, self._arg = session.stepper.fn, session.stepper.arg
-        self._simple = (self._pool is not None and not self._gather and not self._scatter
-                        and not session.in_typed and not session.out_typed and session.events is None)
+        self._simple = self._hot(session)
         if session.stepper.dt_ns != self._dt_ns:
             session.stepper.set_step(self._dt_ns)
         self._fused_stale()
+
+    def _hot(self, session: Session) -> bool:
+        """Whether `step` takes its hot path: reals on the bus, states for history, nothing pending."""
+        return (self._pool is not None and not self._gather and not self._scatter and not session.in_typed
+                and not session.out_typed and session.events is None and session.end_asked is None)
 
     @classmethod
     def fuse(cls, members: Sequence[Module], copies: Sequence[Copies]) -> FusedFMUs | None:
@@ -248,7 +252,7 @@ class FMUModule(FMUModuleBase):
         if session is None or not session.stepper.fast or session.api is None or session.api.dead:
             return False
         return (session.unusable is None and not self._gather and not self._scatter and not session.in_typed
-                and not session.out_typed and session.events is None)
+                and not session.out_typed and session.events is None and session.end_asked is None)
 
     def _fused_stale(self) -> None:
         """Whether this module can be stepped with others changed: its group looks again."""
@@ -288,9 +292,9 @@ class FMUModule(FMUModuleBase):
         try:
             session.failed(rc, slot, t_ns)
         finally:
-            if session.api.dead or session.unusable is not None:
+            if session.api.dead or session.unusable is not None or session.end_asked is not None:
                 self._simple = False  # the general path refuses to call an instance that failed for good
-                self._fused_stale()
+                self._fused_stale()  # (or raises the end the FMU asked for)
 
     def _copy_in(self) -> None:
         values = self._session.in_values
@@ -316,6 +320,10 @@ class FMUModule(FMUModuleBase):
 
     def set_state(self, state: Any) -> None:
         session = self._require("set_state")
+        if session.end_asked is not None and state is not self._state:  # from before the step that asked to end
+            session.end_asked = None  # (the world's rollback of the tick that raised it restores the current one)
+            self._simple = self._hot(session)
+            self._fused_stale()
         if session.api is None or session.api.dead:
             self._state = state  # nothing can be restored into a dead instance; the next step says so
             return

@@ -30,7 +30,7 @@ from ..kernel.errors import ModuleError, NonFiniteOutputError
 from .api import FmuApi, make_api
 from .errors import FMUCallError, FMUError, FMUTerminatedError, FMUUnusableError
 from .events import Events
-from .fastpath import CALLS, EARLY_RETURN, NONFINITE, TERMINATE, Stepper, decode
+from .fastpath import CALLS, EARLY_RETURN, ENDED, NONFINITE, TERMINATE, Stepper, decode
 from .info import BUS_KINDS, EXACT, INT_RANGES, FmuInfo, Signal
 from .states import FMUState, SerializedFMUState, StatePool
 
@@ -119,6 +119,10 @@ class Session:
         self.initialized = False
         self.unusable: str | None = None
         """Why the instance cannot be used any more (None while it can)."""
+        self.end_asked: str | None = None
+        """FMI 3.0: the FMU asked to end the simulation in a step that succeeded. That step stands (FMI 3.0
+        and FMPy keep it); the next step raises `FMUTerminatedError` with this message instead of
+        stepping, until a state from before is restored."""
         try:
             _extract(info, self.dir)
             self.api = make_api(info, self.dir, name)
@@ -271,6 +275,7 @@ class Session:
         self.api.reset()
         self.initialized = False
         self.unusable = None
+        self.end_asked = None
         self.initialize(t0, params, origin_ns)
 
     def step(self, t_ns: int, dt_ns: int, save: bool) -> FMUState | None:
@@ -278,6 +283,8 @@ class Session:
         stepper = self.stepper
         if self.unusable is not None or self.api.dead:
             self.require_usable(CALLS[self.api.version][2])
+        if self.end_asked is not None:
+            raise FMUTerminatedError(self.name, CALLS[self.api.version][2], None, self.end_asked)
         if dt_ns != stepper.dt_ns:
             stepper.set_step(dt_ns)
         if self.in_typed:
@@ -327,6 +334,12 @@ class Session:
         call, status = decode(api.version, rc)
         if status == 1:
             api.check(call, 1)
+            return
+        if status == ENDED:  # the step stands; the end is asked at the next one
+            said = api.sink.take()
+            at = f" in its step from t={t_ns / 1e9 + self.start_time:g} s" if t_ns is not None else ""
+            self.end_asked = (f"{self.info.label} asked to end the simulation{at} (that step stands)"
+                              + (" (" + " | ".join(said) + ")" if said else ""))
             return
         if slot >= 0 and self.pool is not None:
             self.pool.free.append(slot)
@@ -427,6 +440,7 @@ class Session:
             raise FMUError(f"{self.info.label}: {state!r} is not an FMU state")
         pool.restore(state)
         self.unusable = None  # restored to a state from before the failure (FMI: allowed after an error)
+        self.end_asked = None
         return state
 
     def serialize_handle(self, handle: int) -> SerializedFMUState:

@@ -113,10 +113,14 @@ class Worker:
             s.set_params(values)
         return s.out_values.copy(), self._state(None)
 
-    def set_state(self, token: str, data: bytes, outputs: np.ndarray | None = None) -> None:
+    def set_state(self, token: str, data: bytes, outputs: np.ndarray | None = None, current: bool = False) -> None:
         """Restore a state; ``outputs``: the outputs on the parent's bus with it (clocked outputs hold
-        their values between ticks, and are not read from the FMU at other steps)."""
+        their values between ticks, and are not read from the FMU at other steps); ``current``: the
+        state of the last step (a request to end the simulation made there stands)."""
+        asked = self.session.end_asked
         self.keep = self.session.restore(SerializedFMUState(token, data))
+        if current:
+            self.session.end_asked = asked
         if outputs is not None:
             self.session.out_values[:] = outputs
 

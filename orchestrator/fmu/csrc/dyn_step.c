@@ -4,8 +4,9 @@
  * as a pointer-sized integer: ctypes converts those fastest) and lasts p->h seconds.
  * It returns 0, or (call << 4 | status) for the first
  * call whose status is worse than Warning (or the first Warning when all passed):
- * call 1 set, 2 step, 3 get, 4 state; status 6 is FMI 3's terminateSimulation, 7 an early return,
- * 8 an output that is NaN or infinite (the outputs are checked as they are read: the world need not). */
+ * call 1 set, 2 step, 3 get, 4 state; status 7 is an early return, 8 an output that is NaN or infinite
+ * (the outputs are checked as they are read: the world need not), 9 a step that asked to end the
+ * simulation (FMI 3's terminateSimulation on an OK step: kept, its outputs and state taken). */
 #include <math.h>
 #include <stdbool.h>
 #include <stddef.h>
@@ -51,8 +52,8 @@ __attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, v
         double last = 0.0;
         if (p->n_in_vr) CHECK(1, ((set3_t)p->set_real)(p->instance, p->in_vr, p->n_in_vr, p->in, p->n_in));
         CHECK(2, ((step3_t)p->do_step)(p->instance, t, h, p->no_prior != 0, &event, &terminate, &early, &last));
-        if (terminate) return (2 << 4) | 6;
         if (early) return (2 << 4) | 7;
+        if (terminate) warn = (2 << 4) | 9; /* a step that asks to end: kept, then the end is asked (ENDED) */
         if (p->n_out_vr) CHECK(3, ((get3_t)p->get_real)(p->instance, p->out_vr, p->n_out_vr, p->out, p->n_out));
     } else {
         if (p->n_in_vr) CHECK(1, ((set2_t)p->set_real)(p->instance, p->in_vr, p->n_in_vr, p->in));
@@ -94,7 +95,7 @@ __attribute__((visibility("default"))) int dyn_group(const Group *g, void *t_ns,
         }
         int rc = dyn_step(g->plans[i], t_ns, states ? states + i : NULL);
         g->codes[i] = rc;
-        if ((rc & 15) > 1) {
+        if ((rc & 15) > 1 && (rc & 15) != 9) { /* (9: a kept step that asks to end, like a warning) */
             for (size_t j = i + 1; j < g->n; ++j) g->codes[j] = 0;
             return (int)i + 1;
         }
