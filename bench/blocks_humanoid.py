@@ -9,9 +9,10 @@ and how the real world's outcome compares with the prediction, each figure measu
 3. planning: the dynamic planner (slow and fast pushes of any block) with the children of a node
    evaluated on ``serial`` and as one batch on ``processes``: planning time, nodes expanded, children
    simulated per second, ticks per second, and the ratio of the two;
-4. the real world: the plan executed on the brain's world (bit for bit) and streamed as robot commands
-   to a served world (``dynabrain serve`` with the robot rig and a robot emulator, on loopback): the
-   blocks' final positions against the prediction (cm), and the time it took.
+4. the real world: the plan executed on the brain's world (bit for bit) and sent as robot programs (each
+   push's servo sequence) to a served world (``dynabrain serve`` with the robot rig and a robot
+   emulator, on loopback, lock-step): the blocks' final positions against the prediction (cm), and the
+   time it took.
 
 The machine's load (1-minute average) is printed before and after: on a busy machine the ratios hold
 better than the absolute figures.
@@ -89,7 +90,7 @@ def ticks_per_s(seen: list) -> None:
           "the time standing")
 
 
-def planning(seen: list, max_expansions: int):
+def planning(seen: list, max_expansions: int, remote: bool) -> None:
     names = [b.colour for b in seen]
     world = bh.brain_world(seen)
     plans = {}
@@ -106,24 +107,25 @@ def planning(seen: list, max_expansions: int):
         same = bh.execute(world, best)
         print(f"4. executed on the brain's world in {time.perf_counter() - t0:.2f} s: "
               f"{'equals' if same else 'DIFFERS FROM'} the prediction bit for bit")
+        if remote:
+            served(world, best, names)
     finally:
         world.close()
-    return best, names
 
 
-def remote(best, names: list[str]) -> None:
+def served(world, best, names: list[str]) -> None:
     from dynabrain.bridge.testing import EmulatorProcess, ServerProcess
 
     server = ServerProcess(str(bh.SCENARIO), "--robot", f"{bh.ROBOT}=servo", "--deadline", "2s")
     with server, EmulatorProcess(str(bh.SCENARIO), "blocks_humanoid", server.endpoint, "--robot", bh.ROBOT):
         t0 = time.perf_counter()
-        real = bh.execute_remote(best, names, server.endpoint)
+        real = bh.execute_remote(world, best, names, server.endpoint)
         wall = time.perf_counter() - t0
-    ticks = len(best.trajectory["hands.q_ref"])
+    ticks = sum(a.ticks for a in best.actions)
     errors = ", ".join(f"{b} {np.linalg.norm(real[b] - best.trajectory[f'core.{b}.pos'][-1]) * 100:.1f} cm"
                        for b in names)
-    print(f"   streamed to the served world with the robot emulator ({ticks} ticks, a command every "
-          f"{bh.COMMAND_TICKS} ticks, lock-step) in {wall:.2f} s: the blocks end {errors} from the prediction")
+    print(f"   sent as robot programs to the served world with the robot emulator ({len(best.actions)} pushes, "
+          f"{ticks} ticks, lock-step) in {wall:.2f} s: the blocks end {errors} from the prediction")
 
 
 def main() -> None:
@@ -134,9 +136,7 @@ def main() -> None:
     print(load())
     seen = eyes()
     ticks_per_s(seen)
-    best, names = planning(seen, opts.max_expansions)
-    if not opts.no_remote:
-        remote(best, names)
+    planning(seen, opts.max_expansions, not opts.no_remote)
     print(load())
 
 

@@ -11,15 +11,16 @@ left with no block on it; no block may fall to the floor. The brain:
    the blocks it recognised it adds to it with `World.add_body` while it runs. Nothing of the scene's
    truth is copied;
 3. *plans*: A* over hand pushes (`orchestrator.brain.plan.search`), each tried in its world: an action
-   pushes one block left, right or away, slowly or fast, with a hand (`modules.pushing.HandPush`: the
+   pushes one block left or right, slowly or fast, with a hand (`modules.pushing.HandPush`: the
    keyframes by whole-body IK, feet planted, the centre of mass over the soles; the servo drives the
    joints; hand and block meet through contact). The heuristic is the paper's: the blue block's distance
    to the target (in pushes) plus the blocks on it. A block on the floor, a fallen robot, the ZMP out of
    the soles or a keyframe the IK cannot reach makes a child of infinite cost, with its reason;
 4. *acts*: the plan runs on the brain's own world (it ends as predicted, bit for bit), and, with
    ``--connect``, on a separate "real" world served over the bridge with a robot emulator on its robot
-   link: the same motion program (the servo's joint offsets, tick by tick) streamed as robot commands.
-   The real blocks are not the recognised ones, so the outcome differs: the error is printed.
+   link: each push's motion program, the servo ``sequence`` of its keyframes (`HandPush.program`), set
+   on the served world's servo, which the robot link sends the robot as a program, in lock-step. The
+   real blocks are not the recognised ones, so the outcome differs: the error is printed.
 
     .venv/bin/python examples/blocks_humanoid.py                 # see, plan (careful and dynamic), execute
     .venv/bin/python examples/blocks_humanoid.py --backend processes
@@ -81,8 +82,8 @@ ZMP_OUT_TICKS = 25
 in all, during a push: the robot tips (a sample or two at the edge as the hand hits a block is not)."""
 GOAL_M = 0.03
 """The blue block's centre within this of the target's."""
-COMMAND_TICKS = 5
-"""The motion program goes to the robot every this many ticks (10 ms: 100 Hz), each command held."""
+CHUNK_TICKS = 25
+"""Ticks of the served world per lock-step call while a push plays (the robot's link is checked after each)."""
 
 
 def look(scene: World) -> list[Block]:
@@ -117,7 +118,7 @@ def actions(world: World, names: list[str], speeds=("slow", "fast"), directions=
 
 
 def record(names: list[str]) -> list[str]:
-    """What the search records: the blocks, the pelvis, the ZMP, the hands (the motion program to stream)."""
+    """What the search records: the blocks, the pelvis, the ZMP, the hands (unreached keyframes, offsets)."""
     return [*(f"core.{b}.pos" for b in names), "core.pelvis.pos", "zmp.inside", "hands.unreached", "hands.q_ref"]
 
 
@@ -198,43 +199,51 @@ def execute(world: World, p: Plan) -> bool:
     return all(done[k].tobytes() == p.trajectory[k].tobytes() for k in p.trajectory)
 
 
-class RobotLostError(Exception):
-    """The robot link was lost while the plan executed, at ``tick`` of the served world."""
+def programs(world: World, p: Plan) -> list[tuple[Action, list[dict]]]:
+    """Each action of the plan with the servo ``sequence`` its push played in the brain's world: the
+    whole-body IK keyframes solved when the push began (`HandPush.program`), in absolute joint angles."""
+    out = []
+    for action, state in zip(p.actions, p.states, strict=False):
+        world.import_state(state)
+        for name, value in action.params.items():
+            world.set(name, value)
+        world.tick(1)  # the push begins at the step after its parameter is set
+        out.append((action, world.modules["hands"].program))
+    return out
 
-    def __init__(self, tick: int, why: str):
-        super().__init__(f"the robot link was lost at tick {tick}: {why}")
-        self.tick = tick
 
-
-def execute_remote(p: Plan, names: list[str], connect: str, world: str = "blocks_humanoid",
-                   every: int = COMMAND_TICKS, sent: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+def execute_remote(world: World, p: Plan, names: list[str], connect: str, served: str = "blocks_humanoid",
+                   chunk: int = CHUNK_TICKS, ticked: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
     """Run the plan on the world served at ``connect`` (blocks_humanoid.yaml at t=0, with the robot rig
-    ``kid``): tick to the plan's start, then stream the motion program (the hands' joint offsets for the
-    servo's q_ref) as robot commands, one every ``every`` ticks, to the simulation and the robot, in
-    lock-step (``sent``, if given, is called with the served world's tick after each command). Returns
-    the blocks' final positions there. Raises `RobotLostError` when the robot goes away (a command
-    refused, or its liveliness token gone)."""
-    from dynabrain.bridge import BrainClient, WorldRefusedError
+    ``kid``): tick it to the plan's start, then, for each push, set its servo's ``sequence`` to the push's
+    motion program (`programs`; the link sends it to the robot as a program, which the robot plays on
+    its own clock) and tick the push's length, in lock-step, ``chunk`` ticks at a time (``ticked``, if
+    given, is called with the served world's tick after each chunk). Returns the blocks' final
+    positions there. Raises the bridge's `RobotLostError` (naming the tick) when the robot goes away."""
+    from dynabrain.bridge import BrainClient
+    from dynabrain.bridge.errors import RobotLostError
 
-    client = BrainClient(world, connect=connect)
+    motions = programs(world, p)
+    client = BrainClient(served, connect=connect)
     try:
         client.acquire()
         tick = client.status()["tick"]
         if tick > PLAN_AT:
             raise SystemExit(f"the served world is at tick {tick}, past the plan's start ({PLAN_AT}): serve it afresh")
-        client.tick(PLAN_AT - tick)
+        if tick < PLAN_AT:
+            tick = client.tick(PLAN_AT - tick)
         client.robot_enable(ROBOT)
-        program = p.trajectory["hands.q_ref"]
-        for i in range(0, len(program), every):
-            try:
-                client.motion(ROBOT, program[i].tolist(), route="both")
-            except WorldRefusedError as exc:
-                raise RobotLostError(PLAN_AT + i, str(exc)) from None
-            client.tick(min(every, len(program) - i))
-            if sent is not None:
-                sent(PLAN_AT + i + every)
-            if not client.robot_status(ROBOT)["alive"]:
-                raise RobotLostError(PLAN_AT + i + every, "its liveliness token is gone")
+        for action, steps in motions:
+            client.set("servo.sequence", steps)
+            for done in range(0, action.ticks, chunk):
+                tick = client.tick(min(chunk, action.ticks - done))
+                if ticked is not None:
+                    ticked(tick)
+                status = client.robot_status(ROBOT)
+                if not status["alive"]:
+                    lost = status.get("lost_tick") or tick
+                    raise RobotLostError(ROBOT, lost, f"the robot link was lost at tick {lost}, in '{action.name}' "
+                                                      "(its liveliness token went away): the brain stops")
         return {b: np.asarray(client.get(f"core.{b}.pos")) for b in names}
     finally:
         client.close()
@@ -281,8 +290,10 @@ def main() -> None:
               f"{'equals' if same else 'DIFFERS FROM'} the prediction bit for bit")
         if opts.connect:
             predicted = {b: best.trajectory[f"core.{b}.pos"][-1] for b in names}
+            from dynabrain.bridge.errors import RobotLostError
+
             try:
-                real = execute_remote(best, names, opts.connect)
+                real = execute_remote(world, best, names, opts.connect)
             except RobotLostError as exc:
                 print(f"stopped: {exc}")
                 sys.exit(1)

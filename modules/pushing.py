@@ -22,6 +22,12 @@ holds the standing pose (``home``), the push moves the joints away from it and b
 (`DURATIONS`) or fast (the push keyframe in a fraction of the time: the block is hit, and what stands
 on it may stay behind).
 
+The servo adds ``q_ref`` to its target but takes no rate with it, where a ``sequence`` of its own
+feeds its program's rate forward (``kd * rate``). With ``lead`` set to the servo's ``kd / kp``, the
+offsets carry ``lead * rate`` too, and the servo's command, ``kp (target - q) - kd qd``, is the one it
+gives playing the push's poses as its own sequence (`program`): what a robot that takes the program
+plays (the robot link sends a servo's sequence to the robot).
+
 Which hand: a push to the left (+y) is made by the right hand from the block's right side, a push to
 the right by the left hand, a push away (+x) by the hand on the block's side.
 
@@ -106,6 +112,8 @@ class HandPush(Module):
     PARAMS = (
         Param("home", None, doc="the servo's standing pose ({joint: degrees}); offsets are from it"),
         Param("push", "", runtime=True, doc="'BLOCK DIRECTION SPEED' (blue left fast): begins at the next step"),
+        Param("lead", 0.0, unit="s", dimension="time",
+              doc="the servo's kd / kp: the motion's rate times this is added to q_ref (see the module docstring)"),
     )
 
     def __init__(self, name: str, **kwargs: Any):
@@ -132,9 +140,17 @@ class HandPush(Module):
         except MotionError as exc:
             raise fail(self.name, f"params.{exc.field}", str(exc)) from None
         self._pending = False
+        self._lead = float(self.params["lead"])
+
+    @property
+    def program(self) -> list[dict[str, Any]]:
+        """The push now playing as a servo ``sequence`` (absolute poses, {joint: degrees}, and durations):
+        what a servo without this module plays to make the same motion; empty when none plays."""
+        return list(self._steps) if self._motion is not None else []
 
     def start(self, t_ns: int) -> None:
         self._motion: Motion | None = None
+        self._steps: tuple = ()
         self._t0 = t_ns
         for port in ("q_ref", "pushing", "unreached", "pushes"):
             self.out[port][...] = 0.0
@@ -145,8 +161,10 @@ class HandPush(Module):
         out = self.out
         if self._motion is None:
             return
-        pos, _ = self._motion.at(t_ns - self._t0)
+        pos, rate = self._motion.at(t_ns - self._t0)
         np.subtract(pos, self._home, out=out["q_ref"])
+        if self._lead:
+            out["q_ref"] += self._lead * rate
         if t_ns - self._t0 >= self._motion.times[-1]:
             self._motion = None
             out["q_ref"][...] = 0.0
@@ -165,6 +183,7 @@ class HandPush(Module):
             self.out["pushing"][...] = 0.0
             return
         self._motion = parse_motion(self._home + self.out["q_ref"], steps, self._joints, self._slides)
+        self._steps = tuple(steps)
         self._t0 = t_ns
         self.out["pushing"][...] = 1.0
 
@@ -210,10 +229,10 @@ class HandPush(Module):
         return self._solver
 
     def get_state(self) -> tuple:
-        return (self._t0, self._motion, self._pending)
+        return (self._t0, self._motion, self._pending, self._steps)
 
     def set_state(self, state: tuple) -> None:
-        self._t0, self._motion, self._pending = state
+        self._t0, self._motion, self._pending, self._steps = state
 
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
         if name == "push" and value:

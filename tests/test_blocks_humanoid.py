@@ -26,7 +26,7 @@ SMALL = {"movers": ["blue"], "directions": ("left", "right")}
 """A small instance: the blue block pushed left or right, slowly or fast (4 actions)."""
 REMOTE_TOLERANCE_M = 0.02
 """The pushed block on the served world ends within this of where the brain predicted (the real blocks
-are not exactly the recognised ones, and the commands come at 100 Hz, not every tick). The blocks a
+are not exactly the recognised ones). The blocks a
 fast push throws off the stack land where chance puts them: for those, on the table and off the blue
 block is what the test asks."""
 
@@ -110,9 +110,9 @@ def served():
 
 
 def test_the_plan_streamed_to_a_served_world_with_the_robot_ends_near_the_prediction(planned, served):
-    _world, plan = planned
+    world, plan = planned
     names = ["blue", "green", "red"]
-    real = bh.execute_remote(plan, names, served[0].endpoint)
+    real = bh.execute_remote(world, plan, names, served[0].endpoint)
     predicted = plan.trajectory["core.blue.pos"][-1]
     assert np.linalg.norm(real["blue"] - predicted) < REMOTE_TOLERANCE_M, (real, predicted)
     assert np.linalg.norm(real["blue"][:2] - bh.TARGET) < bh.GOAL_M and bh.blocks_on("blue", real) == 0, real
@@ -120,14 +120,16 @@ def test_the_plan_streamed_to_a_served_world_with_the_robot_ends_near_the_predic
 
 
 def test_losing_the_robot_link_during_execution_stops_the_brain_at_a_named_tick(planned, served):
-    _world, plan = planned
+    from dynabrain.bridge.errors import RobotLostError
+
+    world, plan = planned
     robot = served[1]
 
-    def pull_the_cable(tick: int) -> None:  # the robot goes away while the plan streams
+    def pull_the_cable(tick: int) -> None:  # the robot goes away while the plan plays
         if tick >= bh.PLAN_AT + 100 and robot.alive():
             robot.kill()
             time.sleep(0.5)  # the link notices the closed connection
 
-    with pytest.raises(bh.RobotLostError, match=r"the robot link was lost at tick \d+") as lost:
-        bh.execute_remote(plan, ["blue"], served[0].endpoint, sent=pull_the_cable)
+    with pytest.raises(RobotLostError, match=r"the robot link was lost at tick \d+") as lost:
+        bh.execute_remote(world, plan, ["blue"], served[0].endpoint, ticked=pull_the_cable)
     assert bh.PLAN_AT + 100 <= lost.value.tick <= bh.PLAN_AT + 200, lost.value
