@@ -79,7 +79,10 @@ def count_bodies(path: str) -> int:
     return scan.bodies
 
 
-def _file(path: str, scan: _Scan, multiplier: int, depth: int) -> None:
+def _file(path: str, scan: _Scan, multiplier: int, depth: int, folder: str | None = None) -> None:
+    """Count the bodies of the file ``path``; its includes and assets are found from ``folder`` (the
+    top model's folder, as MuJoCo looks for them; a sub-model's own for its own), an include also
+    beside the file that includes it (MuJoCo looks there too)."""
     if depth > MAX_INCLUDE_DEPTH:
         raise ModelFileError(f"{path!r}: includes nest deeper than {MAX_INCLUDE_DEPTH} (MAX_INCLUDE_DEPTH)")
     raw = read_bounded(path, "model file" if depth == 0 else "included file", limits.MAX_MODEL_BYTES)
@@ -93,21 +96,25 @@ def _file(path: str, scan: _Scan, multiplier: int, depth: int) -> None:
         root = ET.fromstring(raw)
     except ET.ParseError as exc:
         raise ModelFileError(f"{path!r} is not well-formed XML: {exc}") from None
-    folder = os.path.dirname(os.path.abspath(path))
+    here = os.path.dirname(os.path.abspath(path))
     if root.tag == "robot":  # URDF: a link per body, no includes
         _add(scan, multiplier * sum(1 for _ in root.iter("link")))
         return
-    _element(root, folder, scan, multiplier, depth)
+    _element(root, (folder or here, here), scan, multiplier, depth)
 
 
-def _element(node: ET.Element, folder: str, scan: _Scan, multiplier: int, depth: int) -> None:
+def _element(node: ET.Element, folders: tuple[str, str], scan: _Scan, multiplier: int, depth: int) -> None:
+    """Count the bodies under ``node``; ``folders``: the top model's folder and the current file's."""
+    folder, here = folders
     for child in node:
         tag = child.tag if isinstance(child.tag, str) else ""
         inner = multiplier
         if tag == "compiler":
             scan.dirs.update({k: v for k, v in child.attrib.items() if k in ("meshdir", "texturedir", "assetdir")})
         elif tag == "include":
-            _file(os.path.join(folder, child.get("file", "")), scan, multiplier, depth + 1)
+            first = os.path.join(folder, child.get("file", ""))
+            found = first if os.path.lexists(first) else os.path.join(here, child.get("file", ""))
+            _file(found, scan, multiplier, depth + 1, folder)
             continue
         elif tag == "body":
             _add(scan, multiplier)
@@ -125,7 +132,7 @@ def _element(node: ET.Element, folder: str, scan: _Scan, multiplier: int, depth:
             _add(scan, multiplier * scan.models.get(child.get("model", ""), 0))
         if child.get("file") and tag in _ASSET_DIRS:
             regular_file(_asset_path(folder, scan, tag, child.get("file", "")), f"{tag} file", limits.MAX_ASSET_BYTES)
-        _element(child, folder, scan, inner, depth)
+        _element(child, folders, scan, inner, depth)
 
 
 def _asset_path(folder: str, scan: _Scan, tag: str, file: str) -> str:
