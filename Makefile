@@ -48,4 +48,6 @@ bench-peers: setup
 	  || echo "note: could not install libtbb12; ecos will not run"; \
 	else echo "note: libtbb12 is not installed; ecos will not run"; fi
 	$(BIN)/pip install --quiet $(PEERS)
+	@$(BIN)/pip install --quiet omsimulator \
+	  || echo "note: omsimulator did not install (its install downloads OpenModelica's binaries); the bench skips it"
 	$(BIN)/python bench/fmu_chain.py
