@@ -237,11 +237,11 @@ class WorldService:
             return {"disconnected": n - len(self.world.connections)}
 
     def do_set_material(self, a: p.MaterialArgs) -> dict[str, Any]:
-        given = {k: getattr(a, k) for k in ("friction", "restitution") if k in a.model_fields_set}
+        given = {k: getattr(a, k) for k in ("friction", "restitution", "mass") if k in a.model_fields_set}
         with self.world.lock():
             self.world.set_material(a.body, **given)
             m = self.world.core.material(a.body)
-            return {"friction": m.friction, "restitution": m.restitution}
+            return {"friction": m.friction, "restitution": m.restitution, "mass": m.mass}
 
     def do_remove_joint(self, a: p.NameArgs) -> None:
         self.world.remove_joint(a.name)

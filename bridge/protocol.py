@@ -186,6 +186,7 @@ class MaterialArgs(_Strict):
     body: Name
     friction: Annotated[float, Field(ge=0)] | Annotated[int, Field(ge=0)] | None = None
     restitution: Annotated[float, Field(ge=0, le=1)] | Annotated[int, Field(ge=0, le=1)] | None = None
+    mass: Annotated[float, Field(gt=0, le=1e6)] | Annotated[int, Field(gt=0, le=1_000_000)] | None = None
 
 
 class NameArgs(_Strict):
@@ -340,8 +341,8 @@ TABLE: dict[str, Call] = {
                      "`{body, signals}`: its name and its new signals", slow=True),
     "remove_body": Call(NameArgs, "`name` (an object)", "`{disconnected}`: the connections to its ports, dropped",
                         slow=True),
-    "set_material": Call(MaterialArgs, "`body`, `friction`, `restitution` (each optional; null: the core's)",
-                         "`{friction, restitution}`: the body's own, now"),
+    "set_material": Call(MaterialArgs, "`body`, `friction`, `restitution`, `mass` (kg) (each optional; null: the "
+                         "core's, the model's own mass)", "`{friction, restitution, mass}`: the body's own, now"),
     "place": Call(PlaceArgs, "`body`, `pos` [3], `quat` [4] (optional)", ""),
     "set": Call(SetArgs, "`name` (`module.param` or an unconnected input `module.port`), `value` (lists of numbers "
                 "are arrays; a list holding objects or strings, such as a servo's `sequence` of `{pose, duration}` "

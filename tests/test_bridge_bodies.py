@@ -48,8 +48,10 @@ def test_a_brain_adds_bodies_sets_a_material_makes_a_hinge_and_removes_a_body(se
     assert np.allclose(world.core.body_info("lid").geoms[0]["rgba"][:3], [0.15, 0.3, 0.85])
     mesh = brain.add_body("cube", "mesh", mesh={"vertices": CUBE}, scale=[1, 1, 0.5], pos=[0.5, 0, 0.1], mass=0.2)
     assert mesh["body"] == "cube" and world.core.body_info("cube").geoms[0]["type"] == "mesh"
-    assert brain.set_material("lid", restitution=0.5) == {"friction": 0.3, "restitution": 0.5}
-    assert brain.set_material("lid", friction=None) == {"friction": None, "restitution": 0.5}  # the core's again
+    assert brain.set_material("lid", restitution=0.5) == {"friction": 0.3, "restitution": 0.5, "mass": None}
+    assert brain.set_material("lid", friction=None) == {"friction": None, "restitution": 0.5, "mass": None}
+    assert brain.set_material("lid", mass=0.2)["mass"] == 0.2  # twice the lid's own 100 g
+    assert brain.set_material("lid", mass=None)["mass"] is None  # the model's own again
     assert brain.make_joint("base", "lid", "flap", kind="hinge", axis=[0, 1, 0], anchor=[0.05, 0, "120mm"]) == "flap"
     assert made(world) == {"flap": "hinge"} and world.core.material("lid").restitution == 0.5
     brain.tick(100)

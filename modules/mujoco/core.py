@@ -213,6 +213,9 @@ class CompiledScene:
             owners.setdefault(geom_body.get(name, name), []).append(g)
         self.body_geoms = {b: np.array(g, dtype=int) for b, g in owners.items()}
         self.applied_materials: tuple | None = None  # the materials the model's geoms were last set for
+        self.mass0 = model.body_mass.copy()  # the compiled masses and inertias: a body's own mass scales them
+        self.inertia0 = model.body_inertia.copy()
+        self.masses_set = False  # whether the model's masses differ from those
         self._map_bodies(layout, edits)
         self._map_joints(layout, edits)
         self._map_actuators_sensors(layout)
@@ -384,6 +387,7 @@ class MujocoCore(EditedCore):
     )
 
     MADE_JOINTS = ("weld", "hinge", "slider", "ball")
+    MASSES = True
     option_problem = staticmethod(mo.option_problem)
     """What is wrong with a scene option (`SceneSpec.options`, MuJoCo's ``<option>``), or None: the scenario
     reports it with its line."""
@@ -667,7 +671,26 @@ class MujocoCore(EditedCore):
         if len(s.weld_ids):
             m.eq_solref[s.weld_ids] = (2.0 * dt, 1.0)
             m.eq_solimp[s.weld_ids] = (0.99, 0.99, 0.001, 0.5, 2.0)
+        self._apply_masses(s, materials)
         s.applied, s.applied_materials = (p, self._period), materials
+
+    @staticmethod
+    def _apply_masses(s: CompiledScene, materials: tuple) -> None:
+        """Bodies' own masses (`set_material(mass=...)`): each body's mass and its inertia scaled alike
+        from the compiled ones, then the model's constants that depend on them (subtree masses, the
+        inverse weights) computed again on scratch data. Nothing is done while no body has one."""
+        own = {mat.body: mat.mass for mat in materials if mat.mass is not None}
+        if not own and not s.masses_set:
+            return
+        m = s.model
+        m.body_mass[:], m.body_inertia[:] = s.mass0, s.inertia0
+        for body, mass in own.items():
+            bid = s.body_id.get(body)
+            if bid is not None and s.mass0[bid] > 0:
+                m.body_mass[bid] = mass
+                m.body_inertia[bid] = s.inertia0[bid] * (mass / s.mass0[bid])
+        mujoco.mj_setConst(m, mujoco.MjData(m))
+        s.masses_set = bool(own)
 
     def _own_materials(self) -> dict[str, tuple[float | None, float | None]]:
         """Body -> its own (friction, restitution), for the bodies that have one: the scene's and the

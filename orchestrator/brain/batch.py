@@ -346,15 +346,18 @@ class Batch:
         return [arr[b, :ticks] for b, ticks in enumerate(lengths)]
 
     def _param_values(self, name: str, values: Any, branches: int) -> list[Any]:
-        if self.world.material_target(name) is not None:  # a body's own friction or restitution
+        if self.world.material_target(name) is not None:  # a body's own friction, restitution or mass
             items = list(values) if isinstance(values, (list, tuple, np.ndarray)) else [values] * branches
             if len(items) != branches:
                 raise DynabrainError(f"batch: {len(items)} values of {name} for {branches} branches")
             for b, value in enumerate(items):
+                mass = name.endswith(".mass")
                 if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float, np.number))
-                                          or not 0 <= float(value) < float("inf")):
-                    raise DynabrainError(f"batch: params[{name!r}][{b}] is {value!r}; a body's friction or "
-                                         "restitution is a finite number >= 0, or None for the core's")
+                                          or not 0 <= float(value) < float("inf") or (mass and not value > 0)):
+                    raise DynabrainError(f"batch: params[{name!r}][{b}] is {value!r}; a body's "
+                                         + ("mass is a finite number above 0" if mass else
+                                            "friction or restitution is a finite number >= 0")
+                                         + ", or None for the core's")
             return items
         target = self.world.settable(name)
         if isinstance(target, str):

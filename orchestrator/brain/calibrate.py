@@ -5,7 +5,8 @@ the real, and customize the simulator on site". The brain ran a motion on the re
 served over the bridge, or the robot link) and recorded what it observed; its own world predicted
 something else. `calibrate` finds the values of some run-time parameters (a body's friction or
 restitution, a servo gain, gravity: ranges the user gives) for which the brain's world, replaying the
-same inputs from the same start, records what was observed. Each generation of candidates is one
+same inputs from the same start, records what was observed. A body's own friction, restitution and
+mass (``core.<body>.mass``) are such parameters. Each generation of candidates is one
 batch of futures (`Batch`); the search is CMA-ES (the ``cma`` package) over the ranges, scaled to the
 unit box.
 
@@ -241,11 +242,13 @@ def _current(world: World, names: list[str]) -> list[float] | None:
             if material is not None:
                 body, key = material
                 value = getattr(world.core.material(body), key)
-                if value is None:  # the body takes the core's coefficient
+                if value is None and key == "mass":  # the model's own (a MuJoCo core's view of its model)
+                    value = world.core.mj.model.body(body).mass[0]
+                elif value is None:  # the body takes the core's coefficient
                     value = world.core.params[key]
             else:
                 value = world.get(name)
             values.append(float(value))
-        except (DynabrainError, TypeError, ValueError, KeyError):
+        except (DynabrainError, TypeError, ValueError, KeyError, AttributeError):
             return None
     return values

@@ -245,12 +245,14 @@ class Weld(NamedTuple):
 
 @state_type
 class Material(NamedTuple):
-    """A body's own contact coefficients, set at run time (`PhysicsCore.set_material`); None: the
-    core's parameter."""
+    """A body's own contact coefficients and mass, set at run time (`PhysicsCore.set_material`); None:
+    the core's parameter (for the mass: the model's own)."""
 
     body: str
     friction: float | None
     restitution: float | None
+    mass: float | None = None
+    """kg; the body's inertia scales with it (the same shape, denser or lighter)."""
 
 
 @state_type
@@ -418,11 +420,12 @@ class PhysicsCore(Module):
         filters with it. The core's ports change."""
         raise DynabrainError(f"{self.ENGINE} core {self.name!r} cannot remove bodies at run time")
 
-    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP) -> None:
-        """Give ``body`` its own friction or restitution (None: the core's parameter again); what is
-        not given stays as it is. Contacts between a body with its own coefficients and one without
-        take the body's own; see the core's docstring for two bodies with their own."""
-        raise DynabrainError(f"{self.ENGINE} core {self.name!r} has no per-body friction or restitution")
+    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP, mass: Any = KEEP) -> None:
+        """Give ``body`` its own friction, restitution or mass (None: the core's parameter again, the
+        model's own mass); what is not given stays as it is. Contacts between a body with its own
+        coefficients and one without take the body's own; see the core's docstring for two bodies with
+        their own."""
+        raise DynabrainError(f"{self.ENGINE} core {self.name!r} has no per-body friction, restitution or mass")
 
     def material(self, body: str) -> Material:
         """``body``'s own friction and restitution (None where it takes the core's)."""
@@ -464,6 +467,8 @@ class EditedCore(PhysicsCore):
 
     MADE_JOINTS: tuple[str, ...] = ("weld",)
     """The kinds of `make_joint` the engine makes (the others are refused, naming the kind)."""
+    MASSES: bool = False
+    """Whether the engine changes a body's mass at run time (`set_material(mass=...)`)."""
 
     _edits: Edits
     _rows: dict[str, int]
@@ -717,10 +722,13 @@ class EditedCore(PhysicsCore):
         spec = self._body_spec(body)
         return Material(body, None if spec is None else spec.friction, None if spec is None else spec.restitution)
 
-    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP) -> None:
+    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP, mass: Any = KEEP) -> None:
         now = self.material(body)
-        values = {"friction": now.friction, "restitution": now.restitution}
-        for key, given, high in (("friction", friction, None), ("restitution", restitution, 1.0)):
+        values = {"friction": now.friction, "restitution": now.restitution, "mass": now.mass}
+        if mass is not KEEP and mass is not None and not self.MASSES:
+            raise self.fail(f"set_material({body!r}), field mass: the {self.ENGINE} core does not change a body's "
+                            "mass at run time")
+        for key, given, high in (("friction", friction, None), ("restitution", restitution, 1.0), ("mass", mass, None)):
             if given is KEEP or given is None:
                 values[key] = values[key] if given is KEEP else None
                 continue
@@ -729,14 +737,17 @@ class EditedCore(PhysicsCore):
             except (TypeError, ValueError):
                 raise self.fail(f"set_material({body!r}), field {key}: expected a number or None, "
                                 f"got {given!r}") from None
-            if not (np.isfinite(x) and x >= 0 and (high is None or x <= high)):
-                raise self.fail(f"set_material({body!r}), field {key}: {key} must be from 0"
+            low_ok = x > 0 if key == "mass" else x >= 0
+            if not (np.isfinite(x) and low_ok and (high is None or x <= high)):
+                raise self.fail(f"set_material({body!r}), field {key}: {key} must be "
+                                + ("above 0" if key == "mass" else "from 0")
                                 + (f" to {high:g}" if high is not None else "") + f", got {given!r}")
             values[key] = x
-        entry = Material(body, values["friction"], values["restitution"])
+        entry = Material(body, values["friction"], values["restitution"], values["mass"])
         kept = [m for m in self._edits.materials if m.body != body]
         spec = self._body_spec(body)
-        if spec is None or (spec.friction, spec.restitution) != (entry.friction, entry.restitution):
+        if (spec is None or (spec.friction, spec.restitution) != (entry.friction, entry.restitution)
+                or entry.mass is not None):
             kept.append(entry)
         self._edit(self._edits._replace(materials=tuple(sorted(kept, key=lambda m: m.body))))
 

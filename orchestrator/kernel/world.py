@@ -649,27 +649,28 @@ class World:
         return gone
 
     # -- per-body materials ------------------------------------------------------------------------------
-    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP) -> None:
-        """Give a body its own friction or restitution (None: the core's parameter again), from this tick
-        on; the same as ``world.set("core.<body>.friction", value)``. Part of history (a backtick
-        undoes it) and of forks; contacts of the body with one that has no coefficient of its own take
-        the body's."""
+    def set_material(self, body: str, *, friction: Any = KEEP, restitution: Any = KEEP, mass: Any = KEEP) -> None:
+        """Give a body its own friction, restitution or mass (None: the core's parameter again, the
+        model's own mass), from this tick on; the same as ``world.set("core.<body>.friction", value)``
+        (``.restitution``, ``.mass``). Part of history (a backtick undoes it) and of forks; contacts of
+        the body with one that has no coefficient of its own take the body's. A mass scales the body's
+        inertia with it (MuJoCo core only)."""
         with self._lock:
             core = self._require_core("set_material")
             expand_names([body], core.bodies(), "body", "set_material")
-            core.set_material(body, friction=friction, restitution=restitution)
+            core.set_material(body, friction=friction, restitution=restitution, mass=mass)
             m = core.material(body)
-            self._edited("material", body=body, friction=m.friction, restitution=m.restitution)
+            self._edited("material", body=body, friction=m.friction, restitution=m.restitution, mass=m.mass)
 
     def material_target(self, name: str) -> tuple[str, str] | None:
-        """(body, ``friction`` or ``restitution``) when ``name`` is ``<core>.<body>.friction`` or
-        ``.restitution`` (or without the core's name) of a body of the core, else None."""
+        """(body, ``friction``, ``restitution`` or ``mass``) when ``name`` is ``<core>.<body>.friction``,
+        ``.restitution`` or ``.mass`` (or without the core's name) of a body of the core, else None."""
         core = self._core
         if core is None:
             return None
         rest = name[len(core.name) + 1:] if name.startswith(f"{core.name}.") else name
         body, _, key = rest.rpartition(".")
-        if key in ("friction", "restitution") and body in core.bodies():
+        if key in ("friction", "restitution", "mass") and body in core.bodies():
             return body, key
         return None
 

@@ -391,7 +391,7 @@ def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".") -> None:
     elif kind == "body_removed":
         world.remove_body(d["body"])
     elif kind == "material":
-        world.set_material(d["body"], friction=d["friction"], restitution=d["restitution"])
+        world.set_material(d["body"], friction=d["friction"], restitution=d["restitution"], mass=d.get("mass"))
     elif kind == "remove_joint":
         world.remove_joint(d["joint"])
     elif kind == "place":

@@ -28,7 +28,7 @@ from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import format_duration, parse_duration_ns
 from ..kernel.world import World, as_connection, expand_names
-from .limits import CORE_LIMITS, MAX_FRICTION, Duration, bounded, check_magnitudes, param_problem, short
+from .limits import CORE_LIMITS, MAX_FRICTION, MAX_MASS_KG, Duration, bounded, check_magnitudes, param_problem, short
 from .scene import parse_body, parse_pose, parse_vector
 
 if TYPE_CHECKING:
@@ -358,21 +358,24 @@ def _make_joint(value: Any, world: World, builder: _Builder, path: Path, known: 
 
 
 def _material(name: str, world: World, timeline: Timeline) -> tuple[str, str] | None:
-    """(body, friction or restitution) when ``name`` is a body's own coefficient (``core.<body>.friction``)."""
+    """(body, friction, restitution or mass) when ``name`` is a body's own coefficient or mass
+    (``core.<body>.friction``)."""
     core = world.core
     if core is None or not name.startswith(f"{core.name}."):
         return None
     body, _, key = name[len(core.name) + 1:].rpartition(".")
-    return (body, key) if key in ("friction", "restitution") and body in timeline.bodies else None
+    return (body, key) if key in ("friction", "restitution", "mass") and body in timeline.bodies else None
 
 
 def _material_problem(material: tuple[str, str], value: Any) -> str | None:
     if value is None:
         return None  # the core's coefficient again
-    high = 1.0 if material[1] == "restitution" else MAX_FRICTION
+    high = {"restitution": 1.0, "mass": MAX_MASS_KG}.get(material[1], MAX_FRICTION)
     try:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UnitError(f"{material[1]} is a number (or null: the core's), got {short(value)}")
+        if material[1] == "mass" and not value > 0:
+            raise UnitError(f"a body's mass is above 0 kg, got {short(value)}")
         bounded(float(value), material[1], 0.0, high)
     except UnitError as exc:
         return str(exc)
