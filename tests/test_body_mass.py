@@ -66,9 +66,9 @@ def test_a_mass_of_zero_or_below_is_refused_by_name():
     with _world() as w:
         with pytest.raises(DynabrainError, match=r"set_material\('box'\), field mass: mass must be above 0"):
             w.set("core.box.mass", 0.0)
-        with pytest.raises(DynabrainError, match=r"params\['core.box.mass'\]\[0\] is -1.0; a body's mass"):
-            with Batch(w, backend="serial") as batch:
-                batch.run(5, branches=1, params={"core.box.mass": [-1.0]})
+        with Batch(w, backend="serial") as batch, pytest.raises(
+                DynabrainError, match=r"params\['core.box.mass'\]\[0\] is -1.0; a body's mass"):
+            batch.run(5, branches=1, params={"core.box.mass": [-1.0]})
 
 
 SCENE = """\
