@@ -5,7 +5,9 @@ meter, and the plan's player). One replan imagines ``--samples`` futures of ``--
 latest state (MPPI, 4 knots a control, hip and knee offsets). Printed, each figure measured in this
 run, the backends interleaved round by round (medians of the rounds):
 
-1. one world stepping alone (`world.tick`): ticks per second, the baseline;
+1. one world stepping alone (`world.tick`): ticks per second, the baseline; and the physics floor:
+   `mujoco.rollout` of the world's compiled model on every core, no module (the most replans the
+   machine could give with this model, whatever the orchestration);
 2. per backend (serial, processes; lockstep when the batch offers it): replans per second, ticks
    imagined per second and their ratio to the baseline, and the share of real time a replan takes
    when the plan is renewed every ``--every`` (a share under 1 keeps up with a world ticking in real
@@ -53,6 +55,28 @@ def alone(world, ticks: int) -> float:
     return ticks / wall
 
 
+def physics_floor(world, branches: int, ticks: int) -> float:
+    """Steps per second of `mujoco.rollout` on the world's compiled model (the weld to the seat
+    included), every branch from the same state with zero controls, one thread a core: the physics
+    alone, no module, no Python per step."""
+    import mujoco
+    from mujoco import rollout
+
+    m = world.core.mj.model
+    d = mujoco.MjData(m)
+    mujoco.mj_copyData(d, m, world.core.mj.data)
+    state = np.empty(mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+    mujoco.mj_getState(m, d, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    threads = os.cpu_count() or 1
+    datas = [mujoco.MjData(m) for _ in range(threads)]
+    starts = np.tile(state, (branches, 1))
+    with rollout.Rollout(nthread=threads) as r:
+        r.rollout([m] * branches, datas, starts, nstep=ticks)  # warm
+        t0 = time.perf_counter()
+        r.rollout([m] * branches, datas, starts, nstep=ticks)
+        return branches * ticks / (time.perf_counter() - t0)
+
+
 def replan_time(mpc: Mpc, state: bytes) -> float:
     t0 = time.perf_counter()
     mpc.replan(state)
@@ -85,7 +109,10 @@ def main() -> None:
         for b, mpc in ctrls.items():
             walls[b].append(replan_time(mpc, state))
     one = statistics.median(base)
-    print(f"  one world alone: {one:,.0f} ticks/s")
+    floor = physics_floor(world, opts.samples, horizon_ticks)
+    print(f"  one world alone: {one:,.0f} ticks/s; the physics floor (mujoco.rollout, core only, "
+          f"{os.cpu_count()} threads): {floor:,.0f} steps/s, {floor / (opts.samples * horizon_ticks):.1f} "
+          "replans/s at most")
     imagined = opts.samples * horizon_ticks
     best = None
     for b in backends:
