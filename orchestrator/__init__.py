@@ -17,8 +17,8 @@ The names are loaded on first use, so importing one room does not import the oth
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+import importlib as _importlib
+from typing import TYPE_CHECKING
 
 _FACE = {
     "kernel": (
@@ -43,17 +43,18 @@ __all__ = [  # the same names as `_FACE`, written out for tools that read __all_
 ]
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     room = _WHERE.get(name)
     if room is None:
         raise AttributeError(f"module 'dynabrain.orchestrator' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{room}"), name)
+    value = getattr(_importlib.import_module(f"{__name__}.{room}"), name)
     globals()[name] = value
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+    """The public names only (not this file's own imports)."""
+    return sorted(__all__)
 
 
 if TYPE_CHECKING:

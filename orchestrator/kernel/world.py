@@ -168,9 +168,11 @@ class World:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def lock(self) -> threading.RLock:
-        """The world lock: ``with world.lock(): ...`` keeps the loop from stepping in between."""
-        return self._lock
+    @property
+    def lock(self) -> _Lock:
+        """The world lock: ``with world.lock: ...`` (or ``world.lock()``, the lock itself) keeps the loop
+        from stepping in between."""
+        return _Lock(self._lock)
 
     def schedule_order(self) -> list[str]:
         """Module names in the order they step within a tick."""
@@ -182,11 +184,32 @@ class World:
         return list(self._structure.layout.slots)
 
     # -- stepping -------------------------------------------------------------------------------------
-    def tick(self, n: int = 1) -> None:
-        """Advance ``n`` base steps (d-tick)."""
+    def tick(self, n: int | float | str = 1) -> None:
+        """Advance ``n`` base steps (d-tick), or a duration: ``"1s"``, ``"250ms"``, or seconds as a float,
+        a whole number of steps."""
+        count = self.ticks_of(n, "tick")
         with self._lock:
             self._check_open()
-            self._steps(n)
+            self._steps(count)
+
+    def ticks_of(self, n: int | float | str, call: str = "ticks_of") -> int:
+        """A tick count from a count (an int of 0 or more) or a duration (``"1s"``, or seconds as a
+        float) that is a whole number of the world's steps; anything else is refused naming ``call``."""
+        if isinstance(n, bool) or not isinstance(n, (int, float, str, np.integer, np.floating)):
+            raise DynabrainError(f"{call}: expected a tick count or a duration ('1s', or seconds as a float), "
+                                 f"got {n!r}")
+        if isinstance(n, (int, np.integer)):
+            if n < 0:
+                raise DynabrainError(f"{call}: {n} ticks; a count is 0 or more (backtick goes back)")
+            return int(n)
+        try:
+            ns = parse_duration_ns(n if isinstance(n, str) else float(n), allow_frequency=False)
+        except (DynabrainError, ValueError, TypeError, OverflowError) as exc:
+            raise DynabrainError(f"{call}: {n!r} is not a duration: {exc}") from None
+        if ns < 0 or ns % self.dt_ns:
+            raise DynabrainError(f"{call}: {n!r} is not a whole number of the world's {format_duration(self.dt_ns)} "
+                                 "steps (and not negative)")
+        return ns // self.dt_ns
 
     def backtick(self, n: int = 1) -> None:
         """Go back ``n`` ticks, exactly (d-backtick). Stepping forward again with the same inputs
@@ -707,8 +730,9 @@ class World:
 
     # -- values ---------------------------------------------------------------------------------------
     def get(self, name: str) -> Any:
-        """A signal (``module.port``; ``body.pos`` is short for the core's ``body.pos``) or a
-        parameter (``module.param``). Signals come back as copies."""
+        """A signal (``module.port``; ``body.pos`` is short for the core's ``body.pos``), a parameter
+        (``module.param``), or a body's field as expressions read it (``body.x``, ``.y``, ``.z``,
+        ``.speed``, ``.vel``, ``.angvel``). Signals come back as copies."""
         with self._lock:
             self._check_open()
             slot = self._resolve_signal(name)
@@ -718,8 +742,26 @@ class World:
             material = self.material_target(name) if self._resolve_param(name) is None else None
             if material is not None:
                 return getattr(self._core.material(material[0]), material[1])  # type: ignore[union-attr]
+            field = self._body_field(name) if self._resolve_param(name) is None else None
+            if field is not None:
+                return field
             module, key = self._split_param(name)
             return module.params[key]
+
+    def _body_field(self, name: str) -> Any:
+        """``<body>.x`` (``.y``, ``.z``, ``.speed``, ``.vel``, ``.angvel``; the core's name may lead) of a
+        body of the core, or None when ``name`` is no such field."""
+        core = self._core
+        if core is None:
+            return None
+        rest = name[len(core.name) + 1:] if name.startswith(f"{core.name}.") else name
+        body, _, key = rest.rpartition(".")
+        if key not in BODY_FIELDS or body not in core.bodies():
+            return None
+        if key in ("x", "y", "z"):
+            return float(core.body_pose(body)[0]["xyz".index(key)])
+        linear, angular = core.body_velocity(body)
+        return {"vel": linear, "angvel": angular, "speed": float(np.linalg.norm(linear))}[key]
 
     def _resolve_param(self, name: str) -> tuple[Module, str] | None:
         module_name, sep, key = name.partition(".")
@@ -1273,6 +1315,29 @@ def _world_values(value: Sequence[Any], key: str) -> list[float]:
     from .bodies import quantities
 
     return [float(x) for x in quantities(value, 3, "length" if key == "anchor" else None)]
+
+
+BODY_FIELDS = ("x", "y", "z", "speed", "vel", "angvel")
+"""A body's fields `World.get` reads besides its signals (as a scenario's expressions do)."""
+
+
+class _Lock:
+    """The world lock as `World.lock` hands it out: a context manager itself (``with world.lock:``) and
+    callable for the lock (``with world.lock():``, ``world.lock().acquire()``)."""
+
+    __slots__ = ("_rlock",)
+
+    def __init__(self, rlock: Any):
+        self._rlock = rlock
+
+    def __call__(self) -> Any:
+        return self._rlock
+
+    def __enter__(self) -> Any:
+        return self._rlock.__enter__()
+
+    def __exit__(self, *exc: object) -> Any:
+        return self._rlock.__exit__(*exc)
 
 
 def _nothing(*_args: Any) -> None:

@@ -194,8 +194,13 @@ def load_scenario(path: str | os.PathLike[str], allow_python: Sequence[str] = ()
 def load_world(path: str | os.PathLike[str], *, allow_python: Sequence[str] = (), **overrides: Any) -> World:
     """The World a scenario file describes, ready at t=0 (``overrides`` replace ``world:`` keys, e.g.
     ``history=100``; ``allow_python``: see `Scenario.allow_python`); a `ScenarioError` lists every
-    problem at once."""
-    return load_scenario(path, allow_python).build(**overrides)
+    problem at once. A name with no such file here is a shipped example's (``load_world("two_cubes")``,
+    as ``dynabrain run two_cubes``)."""
+    import pathlib
+
+    from .shipped import resolve_scenario
+
+    return load_scenario(resolve_scenario(pathlib.Path(os.fspath(path))), allow_python).build(**overrides)
 
 
 def _in_order(problems: list[Problem]) -> list[Problem]:
