@@ -6,9 +6,10 @@ and how the real world's outcome compares with the prediction, each figure measu
 2. the whole robot simulated: ticks per second of the brain's world (the kid's 23 joints, the servo,
    the hands, the ZMP sensor, three blocks) standing and while a hand pushes (the whole-body IK solved
    at the push's start is part of it), against a bare ``mj_step`` of the same model in the same run;
-3. planning: the dynamic planner (slow and fast pushes of any block) with the children of a node
-   evaluated on ``serial`` and as one batch on ``processes``: planning time, nodes expanded, children
-   simulated per second, ticks per second, and the ratio of the two;
+3. planning: the careful planner (slow pushes of free blocks) and the dynamic one (slow and fast pushes
+   of any block), the children of a node evaluated on ``serial`` and as one batch on ``processes``:
+   planning time, nodes expanded, children simulated per second, ticks per second, and the ratio of
+   the two backends over both searches;
 4. the real world: the plan executed on the brain's world (bit for bit) and sent as robot programs (each
    push's servo sequence) to a served world (``dynabrain serve`` with the robot rig and a robot
    emulator, on loopback, lock-step): the blocks' final positions against the prediction (cm), and the
@@ -37,7 +38,7 @@ import blocks_humanoid as bh  # noqa: E402
 import recognised_blocks as rb  # noqa: E402
 from timing import best_of_each  # noqa: E402
 
-from dynabrain.orchestrator import load_world  # noqa: E402
+from dynabrain.orchestrator import Batch, load_world  # noqa: E402
 
 
 def load() -> str:
@@ -93,16 +94,26 @@ def ticks_per_s(seen: list) -> None:
 def planning(seen: list, max_expansions: int, remote: bool) -> None:
     names = [b.colour for b in seen]
     world = bh.brain_world(seen)
-    plans = {}
+    plans, rates = {}, {}
     try:
         for backend in ("serial", "processes"):
-            plans[backend] = p = bh.plan(world, names, backend=backend, max_expansions=max_expansions)
-            print(f"3. planning on {backend}: " + bh.describe("dynamic", p).replace("\n", "\n   "))
-        s, q = plans["serial"].stats, plans["processes"].stats
-        same = [a.name for a in plans["serial"].actions] == [a.name for a in plans["processes"].actions]
-        print(f"   processes / serial: {q.nodes_per_s / s.nodes_per_s:.2f}x the children per second; the plans are "
+            generated = wall = 0.0
+            batch = Batch(world, backend=backend)  # its workers started once, kept for both searches
+            try:
+                for name, careful in (("careful", True), ("dynamic", False)):
+                    plans[backend, name] = p = bh.plan(world, names, careful=careful, batch=batch,
+                                                       max_expansions=max_expansions)
+                    generated, wall = generated + p.stats.generated, wall + p.stats.wall_s
+                    print(f"3. planning on {backend}: " + bh.describe(name, p).replace("\n", "\n   "))
+            finally:
+                batch.close()
+            rates[backend] = generated / wall
+        same = all([a.name for a in plans["serial", n].actions] == [a.name for a in plans["processes", n].actions]
+                    for n in ("careful", "dynamic"))
+        print(f"   processes / serial: {rates['processes'] / rates['serial']:.2f}x the children per second "
+              f"({rates['serial']:.1f} and {rates['processes']:.1f}/s); the plans are "
               f"{'the same' if same else 'DIFFERENT'}")
-        best = plans["processes"]
+        best = plans["processes", "dynamic"]
         t0 = time.perf_counter()
         same = bh.execute(world, best)
         print(f"4. executed on the brain's world in {time.perf_counter() - t0:.2f} s: "
@@ -124,7 +135,7 @@ def served(world, best, names: list[str]) -> None:
     ticks = sum(a.ticks for a in best.actions)
     errors = ", ".join(f"{b} {np.linalg.norm(real[b] - best.trajectory[f'core.{b}.pos'][-1]) * 100:.1f} cm"
                        for b in names)
-    print(f"   sent as robot programs to the served world with the robot emulator ({len(best.actions)} pushes, "
+    print(f"   sent as robot programs to the served world with the robot emulator ({bh.pushes(len(best.actions))}, "
           f"{ticks} ticks, lock-step) in {wall:.2f} s: the blocks end {errors} from the prediction")
 
 

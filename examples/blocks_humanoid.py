@@ -182,11 +182,15 @@ def plan(world: World, names: list[str], *, careful: bool = False, backend: str 
                   batch=batch, max_expansions=max_expansions, max_depth=6)
 
 
+def pushes(n: int) -> str:
+    return f"{n} push" if n == 1 else f"{n} pushes"
+
+
 def describe(name: str, p: Plan) -> str:
     steps = " -> ".join(a.name for a in p.actions) or "(none)"
     reasons = sorted({reason for _path, reason in p.stats.failed})
     return (f"{name}: {'found' if p.found else 'NO PLAN (best node shown)'} in {p.stats.wall_s:.2f} s, "
-            f"{len(p.actions)} pushes: {steps}\n"
+            f"{pushes(len(p.actions))}: {steps}\n"
             f"   {p.stats.expanded} nodes expanded, {p.stats.generated} simulated ({p.stats.nodes_per_s:.1f}/s, "
             f"{p.stats.ticks / max(p.stats.wall_s, 1e-9):.0f} ticks/s) in {p.stats.batches} batches; "
             f"{len(p.stats.failed)} children refused" + (f" ({'; '.join(reasons)})" if reasons else ""))
@@ -218,8 +222,9 @@ def execute_remote(world: World, p: Plan, names: list[str], connect: str, served
     ``kid``): tick it to the plan's start, then, for each push, set its servo's ``sequence`` to the push's
     motion program (`programs`; the link sends it to the robot as a program, which the robot plays on
     its own clock) and tick the push's length, in lock-step, ``chunk`` ticks at a time (``ticked``, if
-    given, is called with the served world's tick after each chunk). Returns the blocks' final
-    positions there. Raises the bridge's `RobotLostError` (naming the tick) when the robot goes away."""
+    given, is called with the served world's tick after each chunk); the next push waits until the robot
+    has played this one. Returns the blocks' final positions there. Raises the bridge's `RobotLostError`
+    (naming the tick) when the robot goes away, `RobotStoppedError` when it does not play a push."""
     from dynabrain.bridge import BrainClient
     from dynabrain.bridge.errors import RobotLostError
 
@@ -244,6 +249,7 @@ def execute_remote(world: World, p: Plan, names: list[str], connect: str, served
                     lost = status.get("lost_tick") or tick
                     raise RobotLostError(ROBOT, lost, f"the robot link was lost at tick {lost}, in '{action.name}' "
                                                       "(its liveliness token went away): the brain stops")
+            client.robot_wait(ROBOT, timeout=action.ticks * world.dt_ns * 1e-9 + 10.0)  # on its own clock
         return {b: np.asarray(client.get(f"core.{b}.pos")) for b in names}
     finally:
         client.close()
@@ -281,8 +287,9 @@ def main() -> None:
         if len(found) == 2:
             polite, dynamic = found.values()
             wins = dynamic.found and (not polite.found or len(dynamic.actions) < len(polite.actions))
-            print(f"the dynamic plan takes {len(dynamic.actions)} pushes, the careful one {len(polite.actions)}"
-                  f"{'' if polite.found else ' (not found)'}: {'the dynamic plan wins' if wins else 'no gain'}")
+            print(f"the dynamic plan takes {pushes(len(dynamic.actions))}, the careful one "
+                  f"{pushes(len(polite.actions))}{'' if polite.found else ' (not found)'}: "
+                  f"{'the dynamic plan wins' if wins else 'no gain'}")
         best = min(found.values(), key=lambda p: (not p.found, len(p.actions)))
         t0 = time.perf_counter()
         same = execute(world, best)
@@ -290,11 +297,11 @@ def main() -> None:
               f"{'equals' if same else 'DIFFERS FROM'} the prediction bit for bit")
         if opts.connect:
             predicted = {b: best.trajectory[f"core.{b}.pos"][-1] for b in names}
-            from dynabrain.bridge.errors import RobotLostError
+            from dynabrain.bridge.errors import RobotLostError, RobotStoppedError
 
             try:
                 real = execute_remote(world, best, names, opts.connect)
-            except RobotLostError as exc:
+            except (RobotLostError, RobotStoppedError) as exc:
                 print(f"stopped: {exc}")
                 sys.exit(1)
             print("executed on the served world with the robot: the blocks end " + ", ".join(
