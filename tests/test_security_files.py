@@ -177,3 +177,10 @@ def test_extraction_writes_what_the_archive_holds(good_fmu, tmp_path):
                 assert (tmp_path / "x" / info.filename).read_bytes() == zf.read(info)
     module = make_fmu_module("m", str(good_fmu), base_dir=".", params={}, targets=[])
     module.close()
+
+
+def test_an_fmu_that_is_a_fifo_or_a_device_is_refused_unopened(tmp_path):
+    os.mkfifo(tmp_path / "pipe.fmu")  # opening it would wait for a writer forever
+    for ref, kind in ((str(tmp_path / "pipe.fmu"), "a FIFO"), ("/dev/zero", "a device")):
+        with pytest.raises(FMUError, match=f"is {kind}, not a file"):
+            make_fmu_module("m", ref, base_dir=".", params={}, targets=[])

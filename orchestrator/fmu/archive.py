@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 import zipfile
 from pathlib import Path
 
@@ -49,6 +50,19 @@ def check_archive(zf: zipfile.ZipFile, label: str) -> None:
             raise FMUError(f"{label}: {info.filename!r} expands {info.file_size // max(info.compress_size, 1)} times "
                            f"(from {info.compress_size} to {info.file_size} bytes), more than {MAX_RATIO} (MAX_RATIO): "
                            "a zip bomb, not an FMU")
+
+
+def not_regular(path: str | Path, label: str) -> None:
+    """Raise `FMUError` when ``path`` exists and is neither a regular file nor a folder (an FMU's source):
+    a FIFO would hang the zip reader, a device would feed it without end. A link is followed."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # (missing: the caller says so)
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        kind = "a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else \
+            "a socket"
+        raise FMUError(f"{label}: {os.fspath(path)!r} is {kind}, not a file")
 
 
 def _check_name(name: str, label: str) -> None:

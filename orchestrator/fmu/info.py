@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .archive import open_checked
+from .archive import not_regular, open_checked
 from .clocks import CLOCK_UNIT, FmuClock, read_clocks
 from .errors import FMUError
 from .paths import SHARED_LIB_EXT, binary_dir
@@ -124,6 +124,7 @@ def read_fmu_info(path: str | Path, label: str | None = None) -> FmuInfo:
     name = label or str(path)
     if not path.exists():
         raise FMUError(f"FMU {name}: file not found")
+    not_regular(path, f"FMU {name}")  # (a FIFO would hang the zip reader, a device feed it forever)
     if path.is_dir() or not zipfile.is_zipfile(path):
         raise FMUError(f"FMU {name}: not a zip file (an FMU is a zip archive with a modelDescription.xml)")
     with open_checked(path, f"FMU {name}") as zf:  # (a zip bomb is refused before a member is read)
