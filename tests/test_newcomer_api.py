@@ -47,7 +47,7 @@ def test_get_reads_a_bodys_fields_as_expressions_do(cubes):
     pos = cubes.get("aa.pos")
     assert cubes.get("aa.z") == pos[2] and cubes.get("core.aa.x") == pos[0]
     assert cubes.get("aa.speed") == pytest.approx(np.linalg.norm(cubes.get("aa.vel")))
-    with pytest.raises(DynabrainError, match="'aa.zz'"):
+    with pytest.raises(DynabrainError, match=r"'aa\.zz'"):
         cubes.get("aa.zz")
 
 
