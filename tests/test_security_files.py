@@ -184,3 +184,10 @@ def test_an_fmu_that_is_a_fifo_or_a_device_is_refused_unopened(tmp_path):
     for ref, kind in ((str(tmp_path / "pipe.fmu"), "a FIFO"), ("/dev/zero", "a device")):
         with pytest.raises(FMUError, match=f"is {kind}, not a file"):
             make_fmu_module("m", ref, base_dir=".", params={}, targets=[])
+
+
+def test_a_scenario_that_is_a_fifo_or_a_device_is_refused_unread(tmp_path):
+    os.mkfifo(tmp_path / "s.yaml")
+    for path in (tmp_path / "s.yaml", "/dev/zero"):
+        done = runner.invoke(app, ["check", str(path)])
+        assert done.exit_code == 2 and "not a regular file" in done.output, done.output

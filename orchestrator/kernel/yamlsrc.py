@@ -45,9 +45,12 @@ _WIDE_BOMS = ((codecs.BOM_UTF32_LE, "UTF-32"), (codecs.BOM_UTF32_BE, "UTF-32"),
 
 def read_yaml(path: str | os.PathLike[str], what: str = "file") -> YamlSource:
     """The YAML file at ``path`` parsed, or a `YamlSource` whose ``problems`` say why not (``what``
-    names the file in a message: "the scenario"). The file is read within `MAX_FILE_BYTES`."""
+    names the file in a message: "the scenario"). The file is read within `MAX_FILE_BYTES`; only a
+    regular file is (a link is followed)."""
     file = os.fspath(path)
     try:
+        if os.path.exists(file) and not os.path.isfile(file):  # a FIFO would hang the read, a device never end
+            return YamlSource.failed(file, Problem(f"cannot read {what}: it is not a regular file", file))
         with open(file, "rb") as fh:
             raw = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
