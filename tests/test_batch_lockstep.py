@@ -173,3 +173,29 @@ def test_branches_from_worlds_of_other_structures_are_stepped_in_groups_of_their
         result = batch.run(8, starts=starts, record=record)
     assert result.ok and any("2 lockstep groups" in note for note in result.notes)
     check_against_alone(humanoid, result, starts, [8] * 3, {}, {}, record)
+
+
+def test_batches_that_go_on_from_the_last_ones_ends_equal_one_long_run(humanoid):
+    """A vector env's steps: each batch starts from the states the last one returned (in another order
+    the second time): the branches go on where they ended, and equal each branch run alone as long."""
+    start = humanoid.export_state()
+    q_ref = np.zeros((2, 15, 23))
+    q_ref[0, :, 0], q_ref[1, :, 1] = 0.05, -0.05
+    record = ("core.pelvis.pos", "servo.tau")
+    with Batch(humanoid, backend="lockstep") as batch:
+        states, order = [start, start], [0, 1]
+        pieces = {name: [[], []] for name in record}
+        for k, flip in enumerate((False, True, False)):
+            if flip:
+                order, states = order[::-1], states[::-1]
+            result = batch.run(5, starts=states, inputs={"servo.q_ref": q_ref[order, 5 * k:5 * k + 5]}, record=record)
+            assert result.ok
+            states = result.states
+            for b, branch in enumerate(order):
+                for name in record:
+                    pieces[name][branch].append(result.signals[name][b])
+    for branch in (0, 1):
+        ref, final = alone(humanoid, start, 15, {"servo.q_ref": q_ref[branch]}, {}, record)
+        assert same_state(states[order.index(branch)], final), branch
+        for name in record:
+            assert bits(np.concatenate(pieces[name][branch])) == bits(ref[name]), (branch, name)

@@ -55,19 +55,26 @@ class _Branch:
     task: BranchTask
     world: World
     start: WorldState
+    fork: int
 
 
 class LockstepBackend:
-    """The ``lockstep`` backend of `Batch` (see the module docstring). ``workers``: threads for the
-    physics (default: every core; `modules.mujoco.batched.workers`)."""
+    """The ``lockstep`` backend of `Batch` (see the module docstring). ``workers``: what `Batch.parallelism`
+    says (default: every core); the physics threads are the MuJoCo core's (`modules.mujoco.batched.workers`:
+    every core, or ``DYNABRAIN_LOCKSTEP_THREADS``)."""
 
     def __init__(self, world: World, workers: int | None = None):
         self.world = world
         self.size = workers or os.cpu_count() or 1
-        if workers is not None:
-            os.environ.setdefault("DYNABRAIN_LOCKSTEP_THREADS", str(workers))
         self._scratch: World | None = None
         self._forks: list[World] = []
+        self._ended: dict[int, tuple[bytes, WorldState, int]] = {}  # `_continuing`
+        # the stacked bus, one row per fork, for one layout; the forks whose modules are bound to their
+        # row of it, with the bindings their world gave them (`_own` gives those back)
+        self._bus: np.ndarray | None = None
+        self._ro: np.ndarray | None = None
+        self._layout: Any = None
+        self._kept: dict[int, list[tuple[Module, Any]]] = {}
         self.notes: list[str] = []
         """What the last batch did other than one lockstep over every branch (groups, branches run alone)."""
         self.reran = 0
@@ -87,42 +94,132 @@ class LockstepBackend:
         self.notes = []
         outcomes: dict[int, BranchOutcome] = {}
         groups: dict[tuple, list[_Branch]] = {}
-        for task, world in zip(tasks, self._forks, strict=False):
-            try:
-                world.import_state(task.start)
-                for name, value in task.params.items():
-                    world.set(name, value)
-            except DynabrainError:  # refused: it fails as it would on any backend
-                outcomes[task.index] = run_branch(world, task)
-                continue
-            start = world.snapshot()
+        placed = self._continuing(tasks)
+        self._ended = {}
+        for task, (fork, going_on) in zip(tasks, placed, strict=True):
+            world = self._forks[fork]
+            if going_on is not None:
+                start = going_on
+            else:
+                self._own(fork)
+                try:
+                    world.import_state(task.start)
+                    for name, value in task.params.items():
+                        world.set(name, value)
+                except DynabrainError:  # refused: it fails as it would on any backend
+                    outcomes[task.index] = run_branch(world, task)
+                    continue
+                start = world.snapshot()
             if any(start.tick <= t < start.tick + task.ticks for t in world.scheduled_ticks()):
+                self._own(fork)
                 self.notes.append(f"branch {task.index} runs into a scheduled event: run alone")
                 outcomes[task.index] = run_branch(world, task)
                 continue
-            groups.setdefault(_group_key(start), []).append(_Branch(task, world, start))
+            groups.setdefault(_group_key(start), []).append(_Branch(task, world, start, fork))
         if len(groups) > 1:
             self.notes.append(f"the branches start from {len(groups)} structures or ticks: stepped as "
                               f"{len(groups)} lockstep groups of " + ", ".join(str(len(g)) for g in groups.values())
                               + " branches")
         for group in groups.values():
-            done, failed = _Lockstep(group, self.world.dt_ns).run()
-            outcomes.update(done)
+            done, failed = self._run(sorted(group, key=lambda b: b.fork))
+            for index, (outcome, final, fork) in done.items():
+                outcomes[index] = outcome
+                if outcome.state is not None:
+                    self._ended[id(outcome.state)] = (outcome.state, final, fork)
             for branch in failed:
                 self.reran += 1
+                self._own(branch.fork)
                 outcomes[branch.task.index] = run_branch(branch.world, branch.task)
             if failed:
                 self.notes.append(f"branch(es) {', '.join(str(b.task.index) for b in failed)} failed in lockstep: "
                                   "run again alone, from their start")
         return [outcomes[t.index] for t in tasks]
 
+    def _run(self, group: list[_Branch]) -> tuple[dict[int, tuple[BranchOutcome, WorldState, int]], list[_Branch]]:
+        """Step a group (its branches in fork order). When its forks are a run of neighbours, their rows
+        of the backend's stacked bus are the group's bus, and their modules stay bound there after the
+        batch (the next batch that goes on from its ends binds nothing); otherwise the group has a bus of
+        its own, bound for this batch only."""
+        forks = [b.fork for b in group]
+        layout = group[0].start.structure.layout
+        if forks != list(range(forks[0], forks[0] + len(forks))):
+            bus = np.empty((len(group), layout.size))
+            ro = _read_only(bus)
+            kept = [pair for row, b in enumerate(group) for pair in _bind(b, bus[row], ro[row])]
+            try:
+                return _Lockstep(group, self.world.dt_ns, bus, ro).run()
+            finally:
+                _give_back(kept)
+        if self._layout is not layout or self._bus is None or len(self._bus) < len(self._forks):
+            for fork in list(self._kept):
+                self._own(fork)
+            self._bus = np.empty((len(self._forks), layout.size))
+            self._ro, self._layout = _read_only(self._bus), layout
+        for b in group:
+            if b.fork not in self._kept:
+                self._kept[b.fork] = _bind(b, self._bus[b.fork], self._ro[b.fork])
+        lo, hi = forks[0], forks[-1] + 1
+        return _Lockstep(group, self.world.dt_ns, self._bus[lo:hi], self._ro[lo:hi]).run()
+
+    def _own(self, fork: int) -> None:
+        """Give fork ``fork``'s modules back the bindings of its world (before it imports or runs alone)."""
+        kept = self._kept.pop(fork, None)
+        if kept is not None:
+            _give_back(kept)
+
+    def _continuing(self, tasks: Sequence[BranchTask]) -> list[tuple[int, WorldState | None]]:
+        """For each task, the fork it runs on and, when it goes on from where that fork's branch of the
+        last batch ended (its start is that branch's final state, the very bytes returned, and it sets no
+        parameter: a vector env's next step, a plan going on), that end as its start: the fork's modules
+        are in it already, so nothing is imported. The others take the forks left over."""
+        claimed: dict[int, int] = {}  # task position -> fork
+        for k, task in enumerate(tasks):
+            hit = self._ended.get(id(task.start))
+            if hit is not None and hit[0] is task.start and not task.params and hit[2] not in claimed.values():
+                claimed[k] = hit[2]
+        free = iter(f for f in range(len(self._forks)) if f not in set(claimed.values()))
+        out = []
+        for k in range(len(tasks)):
+            if k in claimed:
+                out.append((claimed[k], self._ended[id(tasks[k].start)][1]))
+            else:
+                out.append((next(free), None))
+        return out
+
     def close(self) -> None:
+        for fork in list(self._kept):
+            self._own(fork)
         for world in self._forks:
             world.close()
         self._forks = []
         if self._scratch is not None:
             self._scratch.close()
             self._scratch = None
+
+
+def _read_only(bus: np.ndarray) -> np.ndarray:
+    ro = bus.view()
+    ro.flags.writeable = False
+    return ro
+
+
+def _bind(branch: _Branch, row: np.ndarray, ro: np.ndarray) -> list[tuple[Module, Any]]:
+    """Bind the branch's modules to ``row`` of a stacked bus (``ro``: the row read-only), as its world
+    binds them to its own bus; returns each module with the binding its world gave it."""
+    kept = []
+    layout = branch.start.structure.layout
+    for rec in branch.start.structure.records:
+        old = rec.module.binding
+        rec.module.bind_ports(layout.modules[rec.name].binding(row, ro, old.param_changed if old is not None else None))
+        kept.append((rec.module, old))
+        rec.module.bind()
+    return kept
+
+
+def _give_back(kept: list[tuple[Module, Any]]) -> None:
+    for module, old in kept:
+        module.bind_ports(old)
+        module.bind()
 
 
 def _group_key(start: WorldState) -> tuple:
@@ -156,34 +253,15 @@ class _Entry:
 class _Lockstep:
     """One group of branches stepped together (see the module docstring)."""
 
-    def __init__(self, branches: list[_Branch], dt_ns: int):
+    def __init__(self, branches: list[_Branch], dt_ns: int, bus: np.ndarray, ro: np.ndarray):
+        """``bus``: the group's stacked bus (row k: branch k's, its modules bound to it), ``ro`` the same
+        read-only."""
         self.branches, self.dt_ns = branches, dt_ns
         self.structure = branches[0].start.structure
-        layout = self.structure.layout
-        self.bus = np.empty((len(branches), layout.size))
+        self.bus, self.ro = bus, ro
         for row, branch in enumerate(branches):
-            self.bus[row] = branch.start.bus
-        self.ro = self.bus.view()
-        self.ro.flags.writeable = False
+            bus[row] = branch.start.bus
         self.lengths = np.array([b.task.ticks for b in branches])
-
-    # -- binding the branches' modules to their rows ---------------------------------------------------------
-    def _bind(self) -> list[tuple[Module, Any]]:
-        layout, kept = self.structure.layout, []
-        for row, branch in enumerate(self.branches):
-            for rec in branch.start.structure.records:
-                old = rec.module.binding
-                rec.module.bind_ports(layout.modules[rec.name].binding(
-                    self.bus[row], self.ro[row], old.param_changed if old is not None else None))
-                kept.append((rec.module, old))
-                rec.module.bind()
-        return kept
-
-    @staticmethod
-    def _unbind(kept: list[tuple[Module, Any]]) -> None:
-        for module, old in kept:
-            module.bind_ports(old)
-            module.bind()
 
     def _entries(self) -> list[_Entry]:
         layout, out = self.structure.layout, []
@@ -243,16 +321,12 @@ class _Lockstep:
         return out
 
     # -- the ticks ---------------------------------------------------------------------------------------------
-    def run(self) -> tuple[dict[int, BranchOutcome], list[_Branch]]:
-        """Step every branch its ticks; (the outcomes of those that ended well, those that failed)."""
+    def run(self) -> tuple[dict[int, tuple[BranchOutcome, WorldState, int]], list[_Branch]]:
+        """Step every branch its ticks; (the outcomes of those that ended well, each with its final state
+        and fork, by task index; those that failed)."""
         longest = int(self.lengths.max())
         inputs, records = self._inputs(longest), self._records(longest)
-        kept = self._bind()
-        try:
-            entries = self._entries()
-            finals, failed = self._ticks(entries, inputs, records, longest)
-        finally:
-            self._unbind(kept)
+        finals, failed = self._ticks(self._entries(), inputs, records, longest)
         done = {}
         for row, (bus, states) in finals.items():
             done[self.branches[row].task.index] = self._outcome(row, bus, states, records)
@@ -348,13 +422,12 @@ class _Lockstep:
                      for rec, kind, saved in zip(start.structure.records, start.structure.saves, start.states,
                                                  strict=True))
 
-    def _outcome(self, row: int, bus: np.ndarray, states: tuple, records: dict) -> BranchOutcome:
+    def _outcome(self, row: int, bus: np.ndarray, states: tuple,
+                 records: dict) -> tuple[BranchOutcome, WorldState, int]:
         branch = self.branches[row]
         task, start = branch.task, branch.start
-        state = None
-        if task.keep_state:
-            final = WorldState(start.world_id, start.tick + task.ticks, start.structure, bus, states, start.params)
-            state = branch.world.export_state(final)
+        final = WorldState(start.world_id, start.tick + task.ticks, start.structure, bus, states, start.params)
+        state = branch.world.export_state(final) if task.keep_state else None
         signals = {name: records[name][3][row, :task.ticks].reshape(task.ticks, *records[name][2])
                    for name in task.record}
-        return BranchOutcome(task.index, signals, state, BranchStatus(True, ticks_done=task.ticks))
+        return BranchOutcome(task.index, signals, state, BranchStatus(True, ticks_done=task.ticks)), final, branch.fork
