@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -153,3 +154,9 @@ def test_an_empty_recovered_log_says_what_is_missing(log, tmp_path, cut):
         verify(out)
     message = str(caught.value)
     assert "`dynabrain` metadata record" in message and "is not a dynabrain recording" not in message
+
+
+def test_a_log_that_is_a_fifo_is_refused_unopened(tmp_path):
+    os.mkfifo(tmp_path / "run.mcap")  # opening it would wait for a writer forever
+    done = runner.invoke(app, ["replay", str(tmp_path / "run.mcap"), "--verify"])
+    assert done.exit_code == 2 and "not a regular file" in done.output, done.output

@@ -101,7 +101,10 @@ class LogIndex:
 
 
 def read_index(path: str | os.PathLike[str], *, lenient: bool = False) -> LogIndex:
-    """Scan ``path`` once (see the module docstring). Strict by default: a truncated file raises."""
+    """Scan ``path`` once (see the module docstring). Strict by default: a truncated file raises. Only
+    a regular file is read (a FIFO would hang the reader, a device never end)."""
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise LogError(f"{os.fspath(path)} is not a regular file (a FIFO, a device or a folder): not a log")
     index = LogIndex(os.fspath(path), ScanReport())
     dt_ns, pos, dynabrain, latest = 1, 0, False, 0
     for rec in scan(path, index.report, lenient=lenient):
