@@ -3,7 +3,8 @@ each module stepped once for all branches (`Module.step_batch`). Each branch is 
 against the same branch stepped alone on a copy of the world: the humanoid with its modules, with
 per-branch starts, parameters, inputs and lengths, and a branch that diverges; a module of the user's
 without a batched step; one that raises for one branch; a batched step that returns the wrong shape;
-branches that start from worlds of other structures."""
+branches that start from worlds of other structures; batches that go on from the last one's ends; the
+swing's vector env."""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from gymnasium.utils.env_checker import data_equivalence
 from test_batch import bits, same_state
+from test_gym import SWING, swing_task
 
 from dynabrain.modules.basic import Counter
 from dynabrain.orchestrator import Batch, DynabrainError, Module, Port, load_world
+from dynabrain.orchestrator.brain.gym import WorldEnv, WorldVectorEnv
 from dynabrain.orchestrator.kernel.module import Param
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -199,3 +203,25 @@ def test_batches_that_go_on_from_the_last_ones_ends_equal_one_long_run(humanoid)
         assert same_state(states[order.index(branch)], final), branch
         for name in record:
             assert bits(np.concatenate(pieces[name][branch])) == bits(ref[name]), (branch, name)
+
+
+def test_the_swing_vector_env_on_lockstep_equals_single_envs():
+    """Each copy's steps (batches going on from the last one's ends, resets importing a new start with
+    the reset hook's servo gain) are the single env's, bit for bit, autoresets included."""
+    import gymnasium
+
+    world = load_world(SWING)
+    world.remove_module("pump")
+    task = swing_task(on_reset=lambda world, rng: world.set("servo.kp", float(rng.uniform(15, 25))))
+    envs = WorldVectorEnv(world, 2, backend="lockstep", **task)
+    ref = gymnasium.vector.SyncVectorEnv([lambda: WorldEnv(world.fork(world.name), **task) for _ in range(2)])
+    try:
+        envs.action_space.seed(5)
+        assert data_equivalence(envs.reset(seed=7), ref.reset(seed=7), exact=True)
+        for k in range(17):
+            actions = envs.action_space.sample()
+            assert data_equivalence(envs.step(actions), ref.step(actions), exact=True), k
+    finally:
+        envs.close()
+        ref.close()
+        world.close()

@@ -17,8 +17,10 @@ holds a value. A core that diverges (MuJoCo counted a bad position, velocity or 
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
+import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
@@ -30,11 +32,17 @@ from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 _step1, _step2, _step = mujoco.mj_step1, mujoco.mj_step2, mujoco.mj_step
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
+THREADED_S = 0.5e-3
+"""The physics of a tick goes on threads only when stepping it on this thread alone would take longer
+than this (a hand-over to the threads and back costs tens to hundreds of microseconds a tick, more on a
+loaded machine): 64 humanoids (about 20 us a step each) do, 8 swings do not."""
+_COST: dict[int, float] = {}  # id of a model -> seconds one step of it took here, measured stepped alone
 
 
+@functools.cache
 def workers() -> int:
     """How many threads step the physics: every core of the machine (``DYNABRAIN_LOCKSTEP_THREADS``
-    sets another count)."""
+    sets another count; read once)."""
     given = os.environ.get("DYNABRAIN_LOCKSTEP_THREADS", "").strip()
     return max(1, int(given)) if given.isdigit() else os.cpu_count() or 1
 
@@ -86,10 +94,20 @@ def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, 
 
 
 def _run(jobs: list[tuple[Any, Any, int]]) -> None:
-    """``jobs`` cut into one slice per thread, this thread stepping the last."""
+    """``jobs`` cut into one slice per thread, this thread stepping the last; all on this thread while
+    they would take less than `THREADED_S` here (measured the first time, stepped so)."""
+    if not jobs:
+        return
     threads = min(workers(), len(jobs))
-    if threads <= 1:
+    key = id(jobs[0][0])
+    cost = _COST.get(key)
+    if threads <= 1 or cost is None or cost * len(jobs) < THREADED_S:
+        t0 = time.perf_counter()
         _physics(jobs)
+        if cost is None:
+            if len(_COST) >= 1024:
+                _COST.clear()
+            _COST[key] = (time.perf_counter() - t0) / len(jobs)
         return
     size = -(-len(jobs) // threads)
     slices = [jobs[i:i + size] for i in range(0, len(jobs), size)]
