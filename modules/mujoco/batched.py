@@ -32,11 +32,14 @@ from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 _step1, _step2, _step = mujoco.mj_step1, mujoco.mj_step2, mujoco.mj_step
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
-THREADED_S = 0.5e-3
-"""The physics of a tick goes on threads only when stepping it on this thread alone would take longer
-than this (a hand-over to the threads and back costs tens to hundreds of microseconds a tick, more on a
-loaded machine): 64 humanoids (about 20 us a step each) do, 8 swings do not."""
-_COST: dict[int, float] = {}  # id of a model -> seconds one step of it took here, measured stepped alone
+PROBE_TICKS, EVERY_TICKS = 8, 256
+"""The physics of a tick goes on threads only where that is faster here: for each model and count of
+branches, the first `PROBE_TICKS` ticks of every `EVERY_TICKS` are stepped on this thread alone, the next
+`PROBE_TICKS` on threads, and the ticks after them the way whose best tick was shorter (a hand-over to
+the threads and back costs tens to hundreds of microseconds a tick, more on a loaded machine: 8 swings
+are faster on one thread, 64 humanoids on an idle machine's cores). Either way each core's steps are the
+same calls, so the choice changes no result."""
+_TIMES: dict[tuple[int, int], list[float]] = {}  # (id of a model, branches) -> [best alone, best threaded, ticks]
 
 
 @functools.cache
@@ -94,21 +97,34 @@ def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, 
 
 
 def _run(jobs: list[tuple[Any, Any, int]]) -> None:
-    """``jobs`` cut into one slice per thread, this thread stepping the last; all on this thread while
-    they would take less than `THREADED_S` here (measured the first time, stepped so)."""
-    if not jobs:
-        return
+    """Step ``jobs``: on this thread alone, or cut into one slice per thread, this thread stepping the
+    last, whichever was faster (see `PROBE_TICKS`)."""
     threads = min(workers(), len(jobs))
-    key = id(jobs[0][0])
-    cost = _COST.get(key)
-    if threads <= 1 or cost is None or cost * len(jobs) < THREADED_S:
-        t0 = time.perf_counter()
+    if threads <= 1:
         _physics(jobs)
-        if cost is None:
-            if len(_COST) >= 1024:
-                _COST.clear()
-            _COST[key] = (time.perf_counter() - t0) / len(jobs)
         return
+    key = (id(jobs[0][0]), len(jobs))
+    times = _TIMES.get(key)
+    if times is None:
+        if len(_TIMES) >= 1024:
+            _TIMES.clear()
+        times = _TIMES[key] = [float("inf"), float("inf"), 0]
+    tick = int(times[2]) % EVERY_TICKS
+    times[2] += 1
+    if tick == 0:
+        times[0] = times[1] = float("inf")
+    threaded = PROBE_TICKS <= tick < 2 * PROBE_TICKS if tick < 2 * PROBE_TICKS else times[1] < times[0]
+    t0 = time.perf_counter()
+    if threaded:
+        _threaded(jobs, threads)
+    else:
+        _physics(jobs)
+    if tick < 2 * PROBE_TICKS:
+        seconds = time.perf_counter() - t0
+        times[threaded] = min(times[threaded], seconds)
+
+
+def _threaded(jobs: list[tuple[Any, Any, int]], threads: int) -> None:
     size = -(-len(jobs) // threads)
     slices = [jobs[i:i + size] for i in range(0, len(jobs), size)]
     pool = _pool()
