@@ -122,6 +122,7 @@ class FmuApi:
         """Told the FMI function about to be called (isolation and `trace_calls` record it for crash reports)."""
         self.instance: int | None = None
         self.dead = False
+        self._size = c_size_t()
         self._fmu = self._load()
         self.c: dict[str, Any] = {}
         for key, (cname, restype, argtypes) in self.CALLS.items():
@@ -266,6 +267,15 @@ class FmuApi:
         buf = ctypes.create_string_buffer(size.value)
         self._call("serialize", self.instance, handle, ctypes.addressof(buf), size.value)
         return buf.raw
+
+    def serialize_into(self, handle: int, address: int, capacity: int) -> int:
+        """Serialize the state ``handle`` into ``capacity`` bytes at ``address`` when it fits; its size
+        either way (isolation writes it straight into the step's shared memory)."""
+        size = self._size
+        self._call("state_size", self.instance, handle, ctypes.addressof(size))
+        if size.value <= capacity:
+            self._call("serialize", self.instance, handle, address, size.value)
+        return size.value
 
     def deserialize(self, data: bytes, slot: int) -> None:
         buf = ctypes.create_string_buffer(data, len(data))

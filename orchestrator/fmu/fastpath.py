@@ -43,7 +43,8 @@ class Plan(ctypes.Structure):
     _fields_ = [("instance", c_void_p), ("set_real", c_void_p), ("do_step", c_void_p), ("get_real", c_void_p),
                 ("get_state", c_void_p), ("in_vr", c_void_p), ("n_in_vr", c_size_t), ("in_", c_void_p),
                 ("n_in", c_size_t), ("out_vr", c_void_p), ("n_out_vr", c_size_t), ("out", c_void_p),
-                ("n_out", c_size_t), ("fmi3", c_int), ("no_prior", c_int), ("h", c_double), ("t0", c_double)]
+                ("n_out", c_size_t), ("fmi3", c_int), ("no_prior", c_int), ("h", c_double), ("t0", c_double),
+                ("trace", c_void_p)]
 
 
 @functools.cache
@@ -137,6 +138,14 @@ class Stepper:
         """Step from Python (isolation does, telling ``trace`` each FMI call before it is made)."""
         self.trace = trace
         self.fn, self.arg = self._py_step, 0
+
+    def trace_to(self, address: int, trace: Callable[[str], None]) -> None:
+        """Say the call under way (isolation records it for crash reports): the C helper writes its
+        number (`CALLS`) as an int32 at ``address`` (0 between steps); the Python path tells ``trace``."""
+        if self.fast:
+            self.plan.trace = address
+        else:
+            self.use_python(trace)
 
     def bind(self, in_values: np.ndarray, out_values: np.ndarray) -> None:
         """Read inputs from ``in_values`` and write outputs to ``out_values`` (float64, contiguous)."""

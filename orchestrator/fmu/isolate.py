@@ -41,10 +41,11 @@ from ..kernel.workers import spawn_worker
 from . import errors as fmu_errors
 from .clocks import check_periods
 from .errors import FMUCrashError, FMUError, FMUTimeoutError
+from .fastpath import CALLS
 from .info import FmuInfo
 from .module import FMUModuleBase
 from .states import SerializedFMUState
-from .worker import DONE, IO_HEADER, STEP, TRACE_SIZE
+from .worker import DONE, IO_HEADER, STEP, TRACE_FILE_BYTES, TRACE_SIZE
 
 _log = logging.getLogger("dynabrain.fmu")
 STATE_BYTES = 1 << 16
@@ -71,9 +72,9 @@ class _Child:
         self.dir = Path(tempfile.mkdtemp(prefix="dynabrain-isolated-"))
         self.log_path = self.dir / "worker.log"
         trace_path = self.dir / "trace"
-        trace_path.write_bytes(b"\0" * TRACE_SIZE)
+        trace_path.write_bytes(b"\0" * TRACE_FILE_BYTES)
         with open(trace_path, "r+b") as fh:
-            self.trace = mmap.mmap(fh.fileno(), TRACE_SIZE)
+            self.trace = mmap.mmap(fh.fileno(), TRACE_FILE_BYTES)
         self.log = open(self.log_path, "wb")  # noqa: SIM115 - open for the child's whole life
         self.log_fd = self.log.fileno()
         self.since = 0
@@ -86,8 +87,12 @@ class _Child:
             self.cleanup()
             raise FMUError(f"{label}: cannot start the isolation process: {exc}") from None
 
-    def call_in_progress(self) -> str:
-        """The FMI call the child was in ("" when it was between requests)."""
+    def call_in_progress(self, version: int) -> str:
+        """The FMI call the child was in ("" when it was between requests): the C step helper's, else
+        the one Python made (`worker`)."""
+        code = int.from_bytes(self.trace[TRACE_SIZE:TRACE_SIZE + 4], "little")
+        if code in CALLS[version]:
+            return CALLS[version][code]
         return bytes(self.trace[:TRACE_SIZE]).rstrip(b"\0").decode("ascii", "replace")
 
     def death(self) -> str:
@@ -284,7 +289,7 @@ class IsolatedFMUModule(FMUModuleBase):
         """Forget a dead child: (the FMI call it was in, how it ended). The next step starts a new one
         from the last good state, or from scratch when there is none."""
         child = self._child
-        call = child.call_in_progress()
+        call = child.call_in_progress(self.info.version)
         how = child.death()
         self._child = None
         child.cleanup()

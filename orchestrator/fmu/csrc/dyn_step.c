@@ -26,7 +26,8 @@ typedef struct {
     int fmi3;
     int no_prior;
     double h;
-    double t0; /* the FMU's time at t_ns = 0 (its start time) */
+    double t0;  /* the FMU's time at t_ns = 0 (its start time) */
+    int *trace; /* when set: the number of the call under way (1 set .. 4 state), 0 between steps (isolation) */
 } Plan;
 
 typedef int (*set2_t)(void *, const unsigned *, size_t, const double *);
@@ -39,12 +40,13 @@ typedef int (*state_t)(void *, void **);
 
 #define CHECK(call, expr)                                      \
     do {                                                       \
+        if (p->trace) *p->trace = (call);                      \
         int s_ = (expr);                                       \
         if (s_ > 1) return ((call) << 4) | s_;                 \
         if (s_ == 1 && !warn) warn = ((call) << 4) | 1;        \
     } while (0)
 
-__attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, void **state) {
+static int step_once(const Plan *p, void *t_ns, void **state) {
     int warn = 0;
     double t = p->t0 + (double)(uintptr_t)t_ns / 1e9, h = p->h;
     if (p->fmi3) {
@@ -64,6 +66,12 @@ __attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, v
         if (!isfinite(p->out[i])) return (3 << 4) | 8;
     if (state) CHECK(4, ((state_t)p->get_state)(p->instance, state));
     return warn;
+}
+
+__attribute__((visibility("default"))) int dyn_step(const Plan *p, void *t_ns, void **state) {
+    int rc = step_once(p, t_ns, state);
+    if (p->trace) *p->trace = 0;
+    return rc;
 }
 
 /* Several FMUs stepped as one (`orchestrator.fmu.fused`): for each member in schedule order, the bus
