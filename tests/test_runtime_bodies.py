@@ -387,7 +387,7 @@ def test_the_urdf_arm_scenario_loads_and_passes():
 def test_a_urdf_that_does_not_parse_and_a_urdf_on_exudyn_are_refused_naming_the_file(tmp_path):
     (tmp_path / "bad.urdf").write_text('<robot name="x"><link name="a">\n')
     (tmp_path / "s.yaml").write_text("name: s\nworld: {step: 2ms, duration: 1s}\nscene: {model: bad.urdf}\n")
-    with pytest.raises(ScenarioError, match=r"s.yaml:3 \[scene\]: mujoco core 'core': cannot read URDF model file"):
+    with pytest.raises(ScenarioError, match=r"s.yaml:3 \[scene.model\]: bad.urdf: .* is not well-formed XML"):
         load_world(tmp_path / "s.yaml")
     (tmp_path / "x.yaml").write_text("name: x\nworld: {step: 2ms, duration: 1s, core: exudyn}\n"
                                      f"scene: {{model: {ROOT / 'scenarios' / 'models' / 'arm.urdf'}}}\n")
