@@ -18,6 +18,7 @@ holds a value. A core that diverges (MuJoCo counted a bad position, velocity or 
 from __future__ import annotations
 
 import functools
+import itertools
 import os
 import threading
 import time
@@ -125,12 +126,26 @@ def _run(jobs: list[tuple[Any, Any, int]]) -> None:
 
 
 def _threaded(jobs: list[tuple[Any, Any, int]], threads: int) -> None:
-    size = -(-len(jobs) // threads)
-    slices = [jobs[i:i + size] for i in range(0, len(jobs), size)]
+    """The jobs shared by ``threads`` threads (this one too), each taking the next job not taken yet:
+    a thread the machine holds back (another process on its core) delays the tick by the job it has,
+    not by a fixed share of the jobs."""
+    taken = itertools.count()  # next() on it is atomic (the GIL)
     pool = _pool()
-    futures: list[Future[None]] = [pool.submit(_physics, part) for part in slices[:-1]]
+    futures: list[Future[None]] = [pool.submit(_take, jobs, taken) for _ in range(threads - 1)]
     try:
-        _physics(slices[-1])
+        _take(jobs, taken)
     finally:
         for future in futures:
             future.result()
+
+
+def _take(jobs: list[tuple[Any, Any, int]], taken: Any) -> None:
+    count = len(jobs)
+    for k in taken:
+        if k >= count:
+            return
+        m, d, extra = jobs[k]
+        _step2(m, d)
+        if extra:
+            _step(m, d, extra)
+        _step1(m, d)
