@@ -1,12 +1,14 @@
-"""The FMU adapter: FMI 2.0 / 3.0 co-simulation FMUs as modules, and FMU authoring.
+"""The FMU adapter: FMI 1.0 / 2.0 / 3.0 co-simulation FMUs (and FMI 3.0 scheduled execution) as
+modules, and FMU authoring.
 
     module = make_fmu_module("servo", "fmus/servo", base_dir=".", params={"kp": 80.0}, targets=[])
     world.add_module(module)
 
-Layers, bottom up: `api` (one method per FMI call, one status checkpoint), `fastpath` (a step in
+Layers, bottom up: `api` (one method per FMI call, one status checkpoint; `api1` for FMI 1.0), `fastpath` (a step in
 one crossing into C), `states` (FMU states for history), `session` (one instance's life),
 `module` (the Module facade), `isolate` / `worker` (an FMU in its own process). Authoring: `spec`
-(fmu.yaml), `codegen`, `build` (compile, package, cache), `check` (`check_fmu`), `scaffold`.
+(fmu.yaml), `codegen` (`codegen1`: FMI 1.0), `build` (compile, package, cache), `check` (`check_fmu`;
+`checkproc`: in a child process), `scaffold`.
 """
 
 from __future__ import annotations

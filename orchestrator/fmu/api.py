@@ -100,6 +100,8 @@ def _make_loggers() -> tuple[Any, Any]:
 
 
 _LOGGER2, _LOGGER3 = _make_loggers()
+_CLOCK_UPDATE = CFUNCTYPE(None, c_void_p)(lambda env: None)  # (the output clocks are read after each partition)
+_NO_LOCK = CFUNCTYPE(None)(lambda: None)
 
 
 # -- the API ------------------------------------------------------------------------------------------------
@@ -374,6 +376,9 @@ class Fmi3Api(FmuApi):
         "set_clock": ("fmi3SetClock", c_int, (_P, _P, c_size_t, _P)),
         "get_clock": ("fmi3GetClock", c_int, (_P, _P, c_size_t, _P)),
         "get_interval": ("fmi3GetIntervalDecimal", c_int, (_P, _P, c_size_t, _P, _P)),
+        "instantiate_se": ("fmi3InstantiateScheduledExecution", c_void_p,
+                           (c_char_p, c_char_p, c_char_p, c_bool, c_bool, _P, _P, _P, _P, _P)),
+        "activate": ("fmi3ActivateModelPartition", c_int, (_P, c_int, c_double)),
     }
     DTYPES: ClassVar[dict[str, Any]] = {"real": np.float64, "float32": np.float32, "int8": np.int8, "uint8": np.uint8,
                                         "int16": np.int16, "uint16": np.uint16, "integer": np.int32,
@@ -387,6 +392,8 @@ class Fmi3Api(FmuApi):
 
     def instantiate(self, logging_on: bool = False) -> None:
         resources = os.path.join(self.unzip_dir, "resources") + os.sep
+        if self.info.scheduled:
+            return self._instantiate_scheduled(resources, logging_on)
         self.enter("fmi3InstantiateCoSimulation")
         event_mode = bool(self.info.clocks)  # with event mode the session also handles an early return
         ptr = self.c["instantiate"](self.name.encode(), self.info.token.encode(), resources.encode(), False,
@@ -397,6 +404,24 @@ class Fmi3Api(FmuApi):
             raise FMUCallError(self.name, "fmi3InstantiateCoSimulation", None, f"{self.info.label} returned no "
                                "instance" + ("; the FMU said: " + " | ".join(lines) if lines else ""))
         self.instance = ptr
+
+    def _instantiate_scheduled(self, resources: str, logging_on: bool) -> None:
+        """Scheduled execution: the FMU says an output clock ticked with the clock update callback (it is
+        then read with fmi3GetClock after the partition); nothing preempts here, so no locks."""
+        self.enter("fmi3InstantiateScheduledExecution")
+        ptr = self.c["instantiate_se"](self.name.encode(), self.info.token.encode(), resources.encode(), False,
+                                       logging_on, self.sink.key, ctypes.cast(_LOGGER3, c_void_p).value,
+                                       ctypes.cast(_CLOCK_UPDATE, c_void_p).value,
+                                       ctypes.cast(_NO_LOCK, c_void_p).value, ctypes.cast(_NO_LOCK, c_void_p).value)
+        if not ptr:
+            lines = self.sink.take()
+            raise FMUCallError(self.name, "fmi3InstantiateScheduledExecution", None, f"{self.info.label} returned "
+                               "no instance" + ("; the FMU said: " + " | ".join(lines) if lines else ""))
+        self.instance = ptr
+
+    def activate(self, vr: int, t: float) -> None:
+        """Scheduled execution: run the model partition of input clock ``vr`` at FMU time ``t``."""
+        self._call("activate", self.instance, vr, t)
 
     def enter_init(self, t0: float) -> None:
         self._call("enter_init", self.instance, False, 0.0, t0, False, 0.0)

@@ -56,6 +56,8 @@ class FmuClock:
     """Seconds (``intervalDecimal``), when the description gives it."""
     shift: float
     description: str
+    priority: int = 0
+    """Scheduled execution: the order partitions that tick together run in (0 first)."""
 
     @property
     def timed(self) -> bool:
@@ -88,7 +90,7 @@ def read_clocks(path: Path, md: Any, name: str) -> tuple[FmuClock, ...]:
         variability = a.get("intervalVariability", "")
         clock = FmuClock(v.name, v.valueReference, v.causality, variability,
                          float(a["intervalDecimal"]) if "intervalDecimal" in a else None,
-                         float(a.get("shiftDecimal", 0.0)), v.description or "")
+                         float(a.get("shiftDecimal", 0.0)), v.description or "", int(a.get("priority", 0)))
         if v.causality not in ("input", "output"):
             raise FMUError(f"FMU {name}: clock {v.name!r} is a {v.causality} clock; the adapter runs input and output "
                            "clocks")
@@ -100,7 +102,7 @@ def read_clocks(path: Path, md: Any, name: str) -> tuple[FmuClock, ...]:
             raise FMUError(f"FMU {name}: clock {v.name!r} ({variability}) has no period: it declares no "
                            "intervalDecimal")
         out.append(clock)
-    if not md.coSimulation.hasEventMode:
+    if md.coSimulation is not None and not md.coSimulation.hasEventMode:  # (scheduled execution: none needed)
         raise FMUError(f"FMU {name}: it has clocks ({', '.join(c.name for c in out)}) but no event mode "
                        "(hasEventMode is false): a co-simulation FMU ticks its clocks in event mode")
     return tuple(out)

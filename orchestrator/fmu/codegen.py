@@ -195,8 +195,11 @@ def _header(spec: FmuSpec, version: int, guid: str) -> list[str]:
     extra = ' canNotUseMemoryManagementFunctions="true"' if version == 2 else ""
     if spec.clocks:
         extra += ' hasEventMode="true"'
-    head.append(f'  <CoSimulation modelIdentifier="{spec.name}" canHandleVariableCommunicationStepSize="true"'
-                f'{caps}{extra}/>')
+    if spec.scheduled:  # (the interface alone: the master activates partitions, no steps)
+        head.append(f'  <ScheduledExecution modelIdentifier="{spec.name}"{caps}/>')
+    else:
+        head.append(f'  <CoSimulation modelIdentifier="{spec.name}" canHandleVariableCommunicationStepSize="true"'
+                    f'{caps}{extra}/>')
     head += _units(spec)
     head += _type_definitions(spec, version)
     head += ["  <LogCategories>", '    <Category name="logEvents"/>', '    <Category name="logStatusWarning"/>',
@@ -319,6 +322,8 @@ def _clock_variables(spec: FmuSpec) -> list[str]:
         else:
             timing = ' intervalVariability="triggered"'
         text = f" description={quoteattr(c.description)}" if c.description else ""
+        if spec.scheduled and c.causality == "input":  # scheduled execution orders partitions by priority
+            timing += f' priority="{spec.clocks.index(c)}"'
         out.append(f'    <Clock name="{c.name}" valueReference="{vr}"{text} causality="{c.causality}"{timing}/>')
     return out
 

@@ -89,7 +89,10 @@ class Events:
             self.shift_ns[clock.vr] = whole_ns(clock.shift, what.format("shift"), self.period_ns)
         if self.schedule is not None:
             self.schedule.start(self, origin_ns)
-        self.handle(origin_ns, False, in_event_mode=True)
+        if self.s.info.scheduled:
+            self.activate(origin_ns)
+        else:
+            self.handle(origin_ns, False, in_event_mode=True)
 
     def due(self, t_ns: int) -> list[int]:
         """The time-based clocks that tick at world time ``t_ns``."""
@@ -164,6 +167,39 @@ class Events:
                 s.read_group(g)
         s.read_outputs()
         api.enter_step_mode()
+        return True
+
+
+    def activate(self, t_ns: int) -> bool:
+        """Scheduled execution (no event mode, no steps): at world time ``t_ns``, run the model
+        partition of each input clock that ticks there (`due`, or a triggered one whose port reads other
+        than 0), in priority order: its clocked inputs set from the bus, ``fmi3ActivateModelPartition``,
+        its clocked outputs read. Then the next ticks of the clocks whose interval the FMU gives, the
+        output clocks (``fmi3GetClock``: each port says 1 at the tick it ticked) with their clocked
+        outputs, and the other outputs. Whether a partition ran."""
+        s, api = self.s, self.s.api
+        self.before_step()
+        active = self.due(t_ns) + [vr for vr, at in self.triggered if s.in_values[at] != 0]
+        if not active:
+            return False
+        priority = {c.vr: c.priority for c in s.info.clocks}
+        active.sort(key=lambda vr: (priority.get(vr, 0), vr))
+        t = t_ns / 1e9 + s.start_time
+        for vr in active:
+            for g in self.clocked_in.get(vr, ()):
+                s.write_group(g)
+            api.activate(vr, t)
+            for g in self.clocked_out.get(vr, ()):
+                s.read_group(g)
+        if self.schedule is not None:
+            self.schedule.after_event(self, t_ns, active)
+        if len(self.out_vrs):
+            for (vr, at), on in zip(self.out_clocks, api.get_clocks(self.out_vrs), strict=True):
+                if on:
+                    s.out_values[at] = 1.0
+                    for g in self.clocked_out.get(vr, ()):
+                        s.read_group(g)
+        s.read_outputs()
         return True
 
 

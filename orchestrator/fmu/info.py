@@ -104,6 +104,9 @@ class FmuInfo:
     """``DefaultExperiment.startTime``: the FMU's time when it joins a world at t=0 (0 when not given)."""
     clocks: tuple[FmuClock, ...] = ()
     """FMI 3.0 clocks (see `clocks`): the FMU then runs with event mode."""
+    scheduled: bool = False
+    """FMI 3.0 scheduled execution (an FMU without co-simulation): no steps; the master activates each
+    input clock's model partition at its ticks (`events.Events.activate`)."""
 
     @property
     def label(self) -> str:
@@ -137,6 +140,9 @@ def read_fmu_info(path: str | Path, label: str | None = None) -> FmuInfo:
         raise FMUError(f"FMU {name}: FMI version {md.fmiVersion} is not supported (dynabrain runs FMI 1.0, 2.0 and "
                        "3.0)")
     cs = md.coSimulation
+    scheduled = cs is None and getattr(md, "scheduledExecution", None) is not None
+    if scheduled:
+        cs = md.scheduledExecution
     if cs is None:
         kinds = [k for k, v in (("model exchange", md.modelExchange),
                                 ("scheduled execution", getattr(md, "scheduledExecution", None))) if v is not None]
@@ -151,7 +157,7 @@ def read_fmu_info(path: str | Path, label: str | None = None) -> FmuInfo:
     return FmuInfo(str(path), version, md.modelName, cs.modelIdentifier, md.guid or "", md.description or "",
                    bool(cs.canGetAndSetFMUstate), bool(cs.canGetAndSetFMUstate and cs.canSerializeFMUstate),
                    bool(cs.canBeInstantiatedOnlyOncePerProcess), inputs, outputs, params, tuple(skipped), step,
-                   label or "", start, clocks)
+                   label or "", start, clocks, scheduled)
 
 
 def _read_description(path: Path, name: str) -> Any:

@@ -287,6 +287,8 @@ class Session:
             raise FMUTerminatedError(self.name, CALLS[self.api.version][2], None, self.end_asked)
         if dt_ns != stepper.dt_ns:
             stepper.set_step(dt_ns)
+        if self.info.scheduled:  # no steps: the partitions that tick at the step's end run
+            return self._activate(t_ns + dt_ns, save)
         if self.in_typed:
             self.write_typed_inputs()
         pool = self.pool if save else None
@@ -319,6 +321,17 @@ class Session:
                 self._failed_call(exc, 3)
                 raise
         return FMUState(pool, slot) if pool is not None else None
+
+    def _activate(self, t_ns: int, save: bool) -> FMUState | None:
+        """Scheduled execution's step: the unclocked inputs set, the partitions due at ``t_ns`` run
+        (`events.Events.activate`), the state taken after them."""
+        try:
+            self.write_inputs()
+            self.events.activate(t_ns)
+        except ModuleError as exc:
+            self._failed_call(exc, 3)
+            raise
+        return self.pool.capture() if save and self.pool is not None else None
 
     def require_usable(self, call: str) -> None:
         """Refuse a call on an instance that failed for good (see the module docstring)."""

@@ -124,6 +124,9 @@ class SpecCfg(_Strict):
     c_state: list[CStateCfg] = []
     clocks: list[ClockCfg] = []
     """FMI 3.0 clocks (the FMU then has event mode): the model implements ``model_clock``."""
+    interface: Literal["co-simulation", "scheduled-execution"] = "co-simulation"
+    """FMI 3.0: ``scheduled-execution`` declares that interface alone (the master activates each input
+    clock's partition: ``model_clock``; no steps); it needs clocks."""
 
 
 @dataclass(frozen=True)
@@ -183,6 +186,8 @@ class FmuSpec:
     c_state: tuple[tuple[str, str, str | None], ...]
     start_time: float | None = None
     clocks: tuple[Clock, ...] = ()
+    scheduled: bool = False
+    """FMI 3.0 scheduled execution instead of co-simulation."""
 
 
 def load_spec(folder: str | Path) -> FmuSpec:
@@ -234,11 +239,14 @@ class _Checker:
             self.report(("start_time",), "start_time must be a finite number of seconds")
         if cfg.capabilities.serialize and not cfg.capabilities.get_set_state:
             self.report(("capabilities",), "serialize needs get_set_state")
+        scheduled = cfg.interface == "scheduled-execution"
+        if scheduled and (list(cfg.fmi) != [3] or not clocks):
+            self.report(("interface",), "scheduled execution is FMI 3.0 with clocks: fmi: [3] and clocks:")
         if self.problems:
             raise _fail(self.problems)
         return FmuSpec(self.folder, cfg.name, cfg.description, cfg.version, tuple(cfg.fmi), dict(cfg.defines),
                        sources, tuple(cfg.cflags), cfg.step, cfg.capabilities.get_set_state,
-                       cfg.capabilities.serialize, variables, c_state, cfg.start_time, clocks)
+                       cfg.capabilities.serialize, variables, c_state, cfg.start_time, clocks, scheduled)
 
     def _clocks(self, variables: tuple[Var, ...]) -> tuple[Clock, ...]:
         out: list[Clock] = []

@@ -58,10 +58,14 @@ fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3Stri
                                                fmi3ClockUpdateCallback clockUpdate,
                                                fmi3LockPreemptionCallback lockPreemption,
                                                fmi3UnlockPreemptionCallback unlockPreemption) {
-    (void)instanceName, (void)instantiationToken, (void)resourcePath, (void)visible, (void)loggingOn;
-    (void)clockUpdate, (void)lockPreemption, (void)unlockPreemption;
-    if (logMessage) logMessage(instanceEnvironment, fmi3Error, "logStatusError", "this FMU supports co-simulation only");
-    return NULL;
+    (void)resourcePath, (void)visible, (void)lockPreemption, (void)unlockPreemption; /* no preemption here */
+    Instance *inst = core_new(instanceName, instantiationToken, emit3, instanceEnvironment, (void *)logMessage,
+                              loggingOn);
+    if (inst) {
+        inst->event_mode_used = true; /* initialization ends in clock activation mode (the event mode here) */
+        inst->clock_update = (void *)clockUpdate;
+    }
+    return inst;
 }
 
 void fmi3FreeInstance(fmi3Instance instance) { core_free(INST); }
@@ -339,8 +343,16 @@ fmi3Status fmi3DoStep(fmi3Instance instance, fmi3Float64 currentCommunicationPoi
     return (fmi3Status)s;
 }
 
+/* Scheduled execution: the partition of an input clock runs at once (model_clock), at its activation
+ * time; an output clock it ticks is said with the clock update callback. */
 fmi3Status fmi3ActivateModelPartition(fmi3Instance instance, fmi3ValueReference clockReference,
                                       fmi3Float64 activationTime) {
-    (void)clockReference, (void)activationTime;
-    UNSUPPORTED("fmi3ActivateModelPartition");
+    Instance *inst = instance;
+    if (!inst) return fmi3Error;
+    if (!inst->clock_update) return (fmi3Status)core_unsupported(inst, "fmi3ActivateModelPartition");
+    inst->d.time = activationTime;
+    int s = core_activate(inst, clockReference);
+    if (s > fmi3Warning) return (fmi3Status)s;
+    if (core_event_pending(inst)) ((fmi3ClockUpdateCallback)inst->clock_update)(inst->env);
+    return (fmi3Status)s;
 }

@@ -643,6 +643,23 @@ int core_update_discrete_states(Instance *inst, bool *terminate) {
     return worst;
 }
 
+int core_activate(Instance *inst, unsigned vr) {
+    const bool on = true;
+    int s = core_set_clock(inst, &vr, 1, &on);
+    if (s) return s;
+    int c = (int)VARS[vr].offset;
+    inst->clock_done[c] = 0;
+    bool terminate = false;
+    s = core_update_discrete_states(inst, &terminate);
+    inst->clock_active[c] = 0; /* the partition ran: its clock is inactive again */
+    inst->clock_done[c] = 0;
+    if (s <= MODEL_WARNING && terminate) {
+        core_log(inst, MODEL_ERROR, "logStatusError", "the model asked to end the simulation at t=%g s", inst->d.time);
+        return MODEL_ERROR;
+    }
+    return s;
+}
+
 int core_get_interval(Instance *inst, const unsigned *vr, size_t nvr, double *intervals, int *qualifiers) {
     int s = core_usable(inst, "GetIntervalDecimal");
     if (s) return s;

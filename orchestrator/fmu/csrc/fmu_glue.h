@@ -64,6 +64,7 @@ typedef struct Instance {
     unsigned char clock_done[NCLOCKS + 1];   /* ... and the input clocks model_clock has run for */
     bool early_allowed; /* FMI 3: the master handles an early return (earlyReturnAllowed) */
     bool early;         /* the model returned early from the last step (fmu_return_early), at d.time */
+    void *clock_update; /* FMI 3 scheduled execution: the master's clock update callback (NULL: not one) */
 } Instance;
 
 /* A saved FMU state: the model data and the mode it was in. */
@@ -107,6 +108,8 @@ GLUE_INTERNAL int core_enter_step_mode(Instance *inst);
 GLUE_INTERNAL int core_set_clock(Instance *inst, const unsigned *vr, size_t nvr, const bool *values);
 GLUE_INTERNAL int core_get_clock(Instance *inst, const unsigned *vr, size_t nvr, bool *values);
 GLUE_INTERNAL int core_update_discrete_states(Instance *inst, bool *terminate);
+/* FMI 3 scheduled execution: run the partition of input clock `vr` now (its clock ticks alone) */
+GLUE_INTERNAL int core_activate(Instance *inst, unsigned vr);
 GLUE_INTERNAL int core_get_interval(Instance *inst, const unsigned *vr, size_t nvr, double *intervals, int *qualifiers);
 GLUE_INTERNAL int core_get_shift(Instance *inst, const unsigned *vr, size_t nvr, double *shifts);
 
