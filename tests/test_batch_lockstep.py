@@ -128,6 +128,16 @@ class BadShape(Kick):
         return np.zeros((len(members), out.shape[1] - 1))
 
 
+class Loose(Kick):
+    """A batched step that steps each member and lets the first failure out (for which branch, it does
+    not say): every branch is run again alone."""
+
+    @classmethod
+    def step_batch(cls, members, t_ns, dt_ns, inp, out, failed):
+        for member in members:
+            member.step(t_ns, dt_ns)
+
+
 def kicked_world(cls=Kick):
     world = load_world(HUMANOID)
     world.add_module(cls("kick"), connect=[("kick.lean", "servo.q_ref")])
@@ -135,8 +145,9 @@ def kicked_world(cls=Kick):
     return world
 
 
-def test_a_user_module_without_a_batched_step_and_one_that_raises_for_one_branch():
-    world = kicked_world()
+@pytest.mark.parametrize("cls", [Kick, Loose])
+def test_a_user_module_without_a_batched_step_and_one_that_raises_for_one_branch(cls):
+    world = kicked_world(cls)
     try:
         start = world.export_state()
         params = {"kick.at": [3, 8, 12], "kick.fail_at": [0, 6, 0]}
@@ -144,6 +155,7 @@ def test_a_user_module_without_a_batched_step_and_one_that_raises_for_one_branch
         with Batch(world, backend="lockstep") as batch:
             result = batch.run(15, branches=3, params=params, record=record)
         assert result.failed == [1] and "kick refused at count 6" in result.status[1].reason
+        assert any(("0, 1, 2" if cls is Loose else "branch(es) 1 ") in note for note in result.notes)
         assert "kick" in result.status[1].reason
         check_against_alone(world, result, [start] * 3, [15] * 3, {}, params, record)
     finally:

@@ -18,7 +18,8 @@ same order (each module's step, or its batched step, which makes each row what t
 makes), with the same time; the final state is exported from the branch's world, from its row of the
 bus and its modules' states. Nothing of history is kept while the branches run: a branch that fails (a
 module raised for it, its physics diverged, an output is not finite) leaves the lockstep at once and
-is run again alone, from its start, by `run_branch` on its world, so its failure, reason, tick, partial
+is run again alone, from its start, by `run_branch` on its world (every branch stepped by a batched
+step that raised, since it does not say for which), so its failure, reason, tick, partial
 signals and rolled-back state are those of every other backend; the others go on.
 
 Branches are stepped together when their worlds have the same structure (modules, ports, periods,
@@ -401,7 +402,11 @@ class _Lockstep:
             inp, out = self.ro[:, e.inputs], self.ro[:, e.outputs]
         else:
             inp, out = self.ro[active, e.inputs], self.ro[active, e.outputs]
-        new = e.step_batch(members, t_ns, e.period_ns, inp, out, bad)
+        try:
+            new = e.step_batch(members, t_ns, e.period_ns, inp, out, bad)
+        except Exception as exc:  # for which branch is not known: each is run again alone
+            bad.update((k, exc) for k in range(len(members)))
+            return
         if new is None:
             return
         if not isinstance(new, np.ndarray) or new.shape != out.shape:
