@@ -237,3 +237,24 @@ def test_the_swing_vector_env_on_lockstep_equals_single_envs():
         envs.close()
         ref.close()
         world.close()
+
+
+def test_an_animated_robot_and_a_world_made_in_code():
+    """The tendon arm animated (its core steps alone, its motion set between the halves of the step) in
+    a world made in code (no scenario to rebuild it from), each branch its own joint targets."""
+    from test_robot_models import arm_world
+
+    world = arm_world()
+    try:
+        world.make(["box"])
+        world.tick(3)
+        start = world.export_state()
+        q0 = np.array([world.get("core.shoulder.q"), world.get("core.elbow.q")])
+        targets = np.stack([q0 + np.outer(np.linspace(0, 1, 20), [0.2 * b, -0.1 * b]) for b in range(3)])
+        record = ("core.shoulder.q", "core.elbow.qd", "box.pos")
+        with Batch(world, backend="lockstep") as batch:
+            result = batch.run(20, branches=3, inputs={"core.joint_target": targets}, record=record)
+        assert result.ok
+        check_against_alone(world, result, [start] * 3, [20] * 3, {"core.joint_target": list(targets)}, {}, record)
+    finally:
+        world.close()
