@@ -10,12 +10,19 @@ SCENARIO ?= scenarios/two_cubes.yaml
 # Offscreen rendering for the camera module (EGL with Mesa). Installed when missing and we are root
 # (as in CI); otherwise a note, and the camera says at load that no renderer works.
 EGL_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri
+# Headless Chromium for the test that opens the Rerun web viewer (tests/test_view_rerun.py), the same way.
+BROWSER_PACKAGES := chromium
 system-deps:
 	@if ldconfig -p | grep -q 'libEGL.so.1 '; then :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(EGL_PACKAGES) >/dev/null) \
 	  || echo "note: could not install $(EGL_PACKAGES); camera tests will skip"; \
 	else echo "note: $(EGL_PACKAGES) are not installed; camera tests will skip"; fi
+	@if command -v chromium >/dev/null; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(BROWSER_PACKAGES) >/dev/null) \
+	  || echo "note: could not install $(BROWSER_PACKAGES); the Rerun viewer's browser test will skip"; \
+	else echo "note: $(BROWSER_PACKAGES) is not installed; the Rerun viewer's browser test will skip"; fi
 
 $(BIN)/dynabrain: pyproject.toml
 	$(PYTHON) -m venv $(VENV)

@@ -24,7 +24,7 @@ rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (the [view]
 
 from dynabrain.orchestrator import Batch  # noqa: E402
 from dynabrain.orchestrator.logs.logger import McapLogger  # noqa: E402
-from dynabrain.orchestrator.logs.rerun_view import record_log, serve_rrd, viewer_url  # noqa: E402
+from dynabrain.orchestrator.logs.rerun_view import record_log, rerun_program, serve_rrd, viewer_url  # noqa: E402
 from dynabrain.orchestrator.scenario.model import load_scenario  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,9 +58,8 @@ def logs(tmp_path_factory):
 
 def entity_paths(rrd: Path) -> set[str]:
     """The entity paths of a recording, as the ``rerun`` program prints them."""
-    rerun = shutil.which("rerun", path=str(Path(rr.__file__).parents[3].parent / "bin")) or shutil.which("rerun")
-    assert rerun is not None
-    out = subprocess.run([rerun, "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=60, check=True)
+    out = subprocess.run([rerun_program(), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=60,
+                         check=True)
     return {w for w in out.stdout.split() if w.startswith("/")}
 
 

@@ -1,4 +1,5 @@
-"""Run outputs (``--log``, ``log:``, ``--live``) and the log commands (``replay``, ``plot``, ``log recover``).
+"""Run outputs (``--log``, ``log:``, ``--live``, ``--view``) and the log commands (``replay``, ``plot``, ``view``,
+``log recover``).
 
 Exit codes: 0 ok; 1 ``replay --verify`` found a divergence; 2 bad input (a missing, truncated or
 foreign file, an unknown signal, a recorded scenario that no longer loads).
@@ -107,7 +108,110 @@ LivePortOpt = Annotated[int | None, typer.Option(
                         "0: any free port); a port asked for and in use is an error")]
 
 
+VIEW_PORT = 9090
+"""The Rerun web viewer's default port (Rerun's own default)."""
+ViewOpt = Annotated[bool, typer.Option(
+    "--view", help="show the log in Rerun's web viewer (served on loopback; rerun-sdk, the [view] extra)")]
+ViewPortOpt = Annotated[int, typer.Option(
+    "--view-port", help="--view: the web viewer's port (0: any free one); in use: another free one")]
+
+
+def show_in_rerun(log: Path | str, *, save: Path | None = None, port: int = VIEW_PORT, serve: bool = True) -> None:
+    """``dynabrain view``: the log's Rerun recording (``save``, else a temporary file), served in Rerun's web
+    viewer on loopback until Enter (on a terminal) or Ctrl-C; errors as `DynabrainError`."""
+    import tempfile
+
+    from ..logs.rerun_view import record_log, require_rerun
+
+    require_rerun()
+    if not 0 <= port <= 65535:
+        raise DynabrainError(f"--view-port {port} is not a port number (0 to 65535; 0: any free port)")
+    with tempfile.TemporaryDirectory(prefix="dynabrain-view-") as tmp:
+        rrd = Path(save) if save is not None else Path(tmp) / (Path(log).stem + ".rrd")
+        report = record_log(log, rrd)
+        futures = f", {len(report.imagined)} imagined futures" if report.imagined else ""
+        out.print(f"rerun: {rrd if save is not None else 'recording'}: {report.bodies} bodies drawn, {report.poses} "
+                  f"poses, {report.signals} signals, {report.events} events{futures}", markup=False)
+        if serve:
+            _serve_rerun(rrd, port)
+
+
+def view_after_run(log: str, port: int, *, temporary: bool) -> None:
+    """``run --view``: the run's log shown in Rerun; a temporary log (no ``--log``) is removed after."""
+    try:
+        with _bad_input():
+            show_in_rerun(log, port=port)
+    finally:
+        if temporary:
+            import shutil
+
+            shutil.rmtree(os.path.dirname(log), ignore_errors=True)
+
+
+def _serve_rerun(rrd: Path, port: int) -> None:
+    import socket
+    import time
+
+    from ..logs.rerun_view import serve_rrd, viewer_url
+
+    web, grpc = _port_or_free(port), _port_or_free(0)
+    proc = serve_rrd(rrd, web_port=web, grpc_port=grpc)
+    try:
+        end = time.monotonic() + 20
+        while socket.socket().connect_ex(("127.0.0.1", web)) != 0:
+            if proc.poll() is not None or time.monotonic() > end:
+                why = proc.stderr.read().decode(errors="replace")[-400:] if proc.poll() is not None else "no answer"
+                raise DynabrainError(f"the rerun web viewer did not start: {why.strip()}")
+            time.sleep(0.1)
+        out.print(f"rerun: open {viewer_url(web, grpc)}", markup=False)
+        if sys.stdin.isatty():
+            out.print("press Enter to stop", markup=False)
+            with suppress(EOFError, KeyboardInterrupt):
+                input()
+        else:
+            import signal
+
+            def interrupt(_sig: int, _frame: Any) -> None:
+                raise KeyboardInterrupt
+
+            previous = signal.signal(signal.SIGTERM, interrupt)  # a SIGTERM ends it as Ctrl-C does: cleaned up
+            try:
+                with suppress(KeyboardInterrupt):
+                    proc.wait()
+            finally:
+                signal.signal(signal.SIGTERM, previous)
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def _port_or_free(port: int) -> int:
+    """``port`` when it is free on loopback, else (or for 0) a free one."""
+    import socket
+
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 # -- commands -------------------------------------------------------------------------------------------
+def view(log: Annotated[Path, typer.Argument(help="an MCAP log")],
+         save: Annotated[Path | None, typer.Option("--save", help="keep the Rerun recording (.rrd) there")] = None,
+         port: ViewPortOpt = VIEW_PORT,
+         serve: Annotated[bool, typer.Option("--serve/--no-serve", help="serve the web viewer (--no-serve: only "
+                                                                        "write --save)")] = True) -> None:
+    """Show a log in Rerun's web viewer (loopback): the bodies at their poses, the signals, the events and
+    expectation results, and each imagined future beside what happened."""
+    if not serve and save is None:
+        err.print("error: --no-serve writes only the recording: name it with --save", markup=False)
+        raise typer.Exit(2)
+    with _bad_input():
+        show_in_rerun(log, save=save, port=port, serve=serve)
+
+
 def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
            verify: Annotated[bool, typer.Option("--verify", help="re-simulate and compare every tick")] = False,
            publish: Annotated[bool, typer.Option("--publish", help="re-publish over Zenoh")] = False,
@@ -119,6 +223,8 @@ def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
                "--live", help="play the log to Foxglove over WebSocket (loopback), at --speed, once a client "
                               "subscribes; with --publish both at once")] = False,
            live_port: LivePortOpt = None,
+           view_: ViewOpt = False,
+           view_port: ViewPortOpt = VIEW_PORT,
            events: Annotated[int, typer.Option(help="how many events to list")] = 40,
            allow_python: Annotated[list[str] | None, typer.Option(
                "--allow-python", help="--verify: a package whose module classes the log may name, besides "
@@ -151,6 +257,8 @@ def replay(log: Annotated[Path, typer.Argument(help="an MCAP log")],
         finally:
             if view is not None:
                 view.close()
+        if view_:
+            show_in_rerun(log, port=view_port)
         if verify:
             _verify(log, tuple(allow_python or ()), allow_version_mismatch)
 
@@ -267,9 +375,10 @@ def _bad_input() -> Iterator[None]:
 
 
 def register(app: typer.Typer) -> None:
-    """Add ``replay``, ``plot`` and ``log recover`` to the main CLI."""
+    """Add ``replay``, ``plot``, ``view`` and ``log recover`` to the main CLI."""
     app.command()(replay)
     app.command()(plot)
+    app.command()(view)
     group = typer.Typer(no_args_is_help=True, help="Work on log files.")
     group.command()(recover)
     app.add_typer(group, name="log")

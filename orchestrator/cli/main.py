@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import sys
+import tempfile
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Annotated
@@ -27,6 +28,7 @@ from ..scenario.model import Scenario, load_scenario
 from ..scenario.runner import RunResult, run_scenario
 from .common import console, err_console, fail_scenario
 from .examples import resolve_scenario
+from .log import VIEW_PORT, ViewOpt, ViewPortOpt, view_after_run
 
 app = typer.Typer(no_args_is_help=True, help="dynabrain: a co-simulation orchestrator a robot brain embeds.")
 _quiet = False
@@ -93,7 +95,7 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
         ros2_schemas: bool = typer.Option(False, "--ros2-schemas", help="--log: also write /joint_states, /clock "
                                           "and /tf as ROS 2 messages (CDR, ros2msg schemas) for rosbag2 tools"),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
-        allow_python: AllowPythonOpt = None) -> None:
+        allow_python: AllowPythonOpt = None, view: ViewOpt = False, view_port: ViewPortOpt = VIEW_PORT) -> None:
     """Run a scenario to its end and check its expectations."""
     scenario = resolve_scenario(scenario)
     if not scenario.exists() and scenario.parent == Path("."):
@@ -108,6 +110,9 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
         fail_scenario(exc)
     from .log import attach_run_outputs
 
+    temporary = view and log is None and not sc.model.log.mcap  # --view shows a log: a temporary one unless asked
+    if temporary:
+        log = Path(tempfile.mkdtemp(prefix="dynabrain-view-")) / f"{sc.model.name}.mcap"
     try:
         outputs = attach_run_outputs(world, sc, log=log, live=live, console=err_console, live_rate_hz=live_rate,
                                      live_port=live_port, ros2_schemas=ros2_schemas)
@@ -127,6 +132,8 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
         world.close()  # also on Ctrl-C: observers (the log) are closed and stay readable
     _summary(result, history)
     _engine_warnings()
+    if view:
+        view_after_run(outputs.logger.path, view_port, temporary=temporary)
     raise typer.Exit(0 if result.ok else 1)
 
 

@@ -296,15 +296,39 @@ def _events(rr: Any, rec: Any, index: LogIndex, report: ViewReport) -> None:
 
 
 def serve_rrd(rrd: str | os.PathLike[str], *, web_port: int = 9090, grpc_port: int = 9876) -> subprocess.Popen:
-    """Rerun's web viewer for ``rrd``, served on loopback by the ``rerun`` program (a child process; the
-    caller ends it). Open ``viewer_url(web_port, grpc_port)`` in a browser."""
+    """Rerun's web viewer for ``rrd``, served on loopback by the ``rerun`` program (a child process, ended
+    with this one on Linux; the caller ends it). Open ``viewer_url(web_port, grpc_port)`` in a browser."""
     require_rerun()
+    return subprocess.Popen([rerun_program(), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port",
+                             str(web_port), "--port", str(grpc_port), os.fspath(rrd)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                            preexec_fn=_end_with_parent if sys.platform == "linux" else None)
+
+
+def rerun_program() -> str:
+    """The ``rerun`` program itself (rerun-sdk's ``rerun_cli`` package holds it; its ``rerun`` script on PATH
+    starts it as a child that would outlive the script when that is killed)."""
+    try:
+        import rerun_cli
+
+        exe = os.path.join(os.path.dirname(rerun_cli.__file__), "rerun")
+        if os.access(exe, os.X_OK):
+            return exe
+    except ImportError:
+        pass
     exe = shutil.which("rerun", path=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
     if exe is None:
-        raise DynabrainError("the rerun program (installed with rerun-sdk) is not on PATH")
-    return subprocess.Popen([exe, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web_port),
-                             "--port", str(grpc_port), os.fspath(rrd)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL)
+        raise DynabrainError("the rerun program (installed with rerun-sdk) is not found")
+    return exe
+
+
+def _end_with_parent() -> None:
+    """In the child, before exec: end when the parent ends (PR_SET_PDEATHSIG), so that a killed ``view``
+    leaves no server behind."""
+    import ctypes
+    import signal
+
+    ctypes.CDLL(None).prctl(1, signal.SIGTERM)
 
 
 def viewer_url(web_port: int, grpc_port: int) -> str:
