@@ -324,13 +324,25 @@ def _verify(log: Path, allow_python: tuple[str, ...] = (), allow_version_mismatc
 
 def plot(log: Annotated[Path, typer.Argument(help="an MCAP log")],
          signals: Annotated[list[str], typer.Argument(help="signals (core.aa.pos, aa.pos, aa.pos[2])")],
-         output: Annotated[Path | None, typer.Option("--out", "-o", help="PNG file (default: LOG.png)")] = None
+         output: Annotated[Path | None, typer.Option("--out", "-o", help="PNG file (default: LOG.png)")] = None,
+         events: Annotated[str | None, typer.Option(
+             "--events", help="event kinds to mark, comma-separated (set,make_joint); none for none (default: all "
+                              "but the log's bookkeeping)")] = None,
+         imagined: Annotated[bool, typer.Option(
+             "--imagined", help="overlay the log's imagined futures of the same signals (dashed)")] = False,
+         expectations: Annotated[bool, typer.Option(
+             "--expectations/--no-expectations", help="a strip with the run's expectation results")] = True,
+         split: Annotated[bool, typer.Option(
+             "--split", help="a panel per component (x, y, z each its own; also when their scales differ)")] = False
          ) -> None:
-    """Plot signals of a log against simulated time (a PNG), with its events marked."""
+    """Plot signals of a log against simulated time (a PNG): events marked (repeated edits as a band), the
+    expectation results, the imagined futures with --imagined."""
+    from ..logs.plot import PlotOptions
     from ..logs.plot import plot as make_plot
 
+    kinds = None if events is None else tuple(k.strip() for k in events.split(",") if k.strip() and k != "none")
     with _bad_input():
-        path = make_plot(log, signals, output)
+        path = make_plot(log, signals, output, PlotOptions(kinds, imagined, expectations, split))
     out.print(f"wrote {path}", markup=False)
 
 

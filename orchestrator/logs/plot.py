@@ -11,30 +11,39 @@ of a spatial unit (m, m/s, m/s^2, rad/s, rad/s^2, N, N*m: ``x y z``) or a quater
 ``w x y z``), anything else by its index: ``zmp.cop[l_foot, x]``, ``noise.y[1]``, ``m.k[0, 2]``.
 
 Only the run is plotted: ticks that a rollback discarded are left out (see `logs.read.final_mask`).
-One panel per signal, in its unit. Events are vertical lines (rollbacks dashed red); their labels go
-on the top panel, one per group of events closer together than 1/60 of the time axis (``set x3,
-param``), at most 40 groups labelled (the rest are counted in the corner).
+One panel per signal, in its unit; one panel per component with ``split``, or when the components'
+scales differ (of the components that move, the largest range over `SCALE_RATIO` times the smallest:
+a block's small x/y motion is not flattened against its z). Lines that share a panel differ in colour,
+dash and sparse markers, so that one hidden under another still shows. Events (``events``: which
+kinds; all but the bookkeeping ones by default) are lines, and a kind repeated every few ticks a band
+(`logs.plot_marks`); ``expectations`` adds a strip with the run's expectation results; ``imagined``
+overlays the log's imagined futures (``/imagined/<name>/<branch>/bus``) of the same signals, dashed,
+in their line's colour.
 """
 
 from __future__ import annotations
 
 import os
 import re
-from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..kernel.suggest import did_you_mean
+from .plot_marks import draw_events, draw_results, event_groups, event_marks, results
 from .read import LogIndex, iter_bus, read_index
-from .scan import LogError
-from .schema import TOPIC_BUS, Slot
+from .scan import LogError, Message, scan
+from .schema import IMAGINED, TOPIC_BUS, BusCodec, Slot
 
-SKIPPED_EVENTS = ("layout", "expect", "run_end")
+__all__ = ["PlotOptions", "event_groups", "plot", "resolve", "signal_names"]
 _COMPONENT = re.compile(r"^(.*)\[([^\[\]]+)\]$")
 SPATIAL_UNITS = ("m", "m/s", "m/s^2", "m/s2", "rad/s", "rad/s^2", "rad/s2", "N", "N*m", "Nm")
-LABEL_GROUPS = 40
-"""Event labels drawn at most (groups of events close in time); the rest are counted."""
+SCALE_RATIO = 10.0
+"""Components whose ranges differ by more than this factor get a panel each."""
+MAX_FUTURES = 30
+"""Imagined futures overlaid at most (the first ones in the log; the rest are counted)."""
+_STYLES = ("-", "--", "-.", ":")
+_MARKERS = ("o", "s", "^", "v", "D", "x", "P", "*")
 
 
 @dataclass(frozen=True)
@@ -47,16 +56,40 @@ class Wanted:
     """Each component's label (``[l_foot, x]``), in flat order."""
 
 
-def plot(path: str | os.PathLike[str], signals: list[str], out: str | os.PathLike[str] | None = None) -> str:
+@dataclass(frozen=True)
+class PlotOptions:
+    """What is drawn besides the signals (see the module docstring). ``events``: None for every kind but the
+    bookkeeping ones, else the kinds to mark (empty: none)."""
+
+    events: tuple[str, ...] | None = None
+    imagined: bool = False
+    expectations: bool = True
+    split: bool = False
+
+
+@dataclass(frozen=True)
+class Future:
+    """An imagined future of the plotted signals: its label, times (s), and per wanted signal its values
+    (or None when the future did not record it)."""
+
+    label: str
+    times: np.ndarray
+    values: list[np.ndarray | None]
+
+
+def plot(path: str | os.PathLike[str], signals: list[str], out: str | os.PathLike[str] | None = None,
+         options: PlotOptions | None = None) -> str:
     """Write the PNG and return its path (default: the log's path with ``.png``)."""
     path = os.fspath(path)
+    options = options or PlotOptions()
     if not signals:
         raise LogError("name at least one signal to plot")
     index = read_index(path)
     wanted = [resolve(index, s) for s in signals]
     times, values = _collect(path, index, wanted)
+    futures = _futures(index, wanted) if options.imagined else []
     out = os.fspath(out) if out is not None else (path[:-5] if path.endswith(".mcap") else path) + ".png"
-    _draw(out, index, wanted, times, values)
+    _draw(out, index, wanted, times, values, futures, options)
     return out
 
 
@@ -189,26 +222,89 @@ def _collect(path: str, index: LogIndex, wanted: list[Wanted]) -> tuple[np.ndarr
     return times, values
 
 
-def _draw(out: str, index: LogIndex, wanted: list[Wanted], times: np.ndarray, values: list[np.ndarray]) -> None:
+def _futures(index: LogIndex, wanted: list[Wanted]) -> list[Future]:
+    """The imagined futures (``/imagined/<name>/<branch>/bus``) that recorded any of the wanted signals."""
+    codecs: dict[int, tuple[str, BusCodec]] = {}
+    for cid, ch in index.channels.items():
+        if ch.topic.startswith(IMAGINED + "/") and ch.topic.endswith(TOPIC_BUS) and "layout" in ch.metadata:
+            codec = BusCodec.from_metadata(ch.metadata)
+            if any(w.signal in codec.by_name for w in wanted):
+                codecs[cid] = (ch.topic[len(IMAGINED) + 1:-len(TOPIC_BUS)], codec)
+    rows: dict[int, list[tuple[int, np.ndarray]]] = {cid: [] for cid in codecs}
+    if codecs:
+        for rec in scan(index.path):
+            if isinstance(rec, Message) and rec.channel_id in codecs:
+                decoded, ticks, _epochs = codecs[rec.channel_id][1].decode(np.frombuffer(rec.data, dtype=np.uint8))
+                rows[rec.channel_id].append((int(ticks[0]), decoded[0]))
+    dt = index.info.dt_ns if index.info else 1
+    out = []
+    for cid, (label, codec) in codecs.items():
+        got = sorted(rows[cid], key=lambda r: r[0])
+        picked: list[np.ndarray | None] = []
+        for w in wanted:
+            slot = codec.by_name.get(w.signal)
+            if slot is None or (w.component is not None and w.component >= slot.size):
+                picked.append(None)
+                continue
+            data = np.array([r[slot.offset:slot.offset + slot.size] for _t, r in got]).reshape(len(got), slot.size)
+            picked.append(data[:, [w.component]] if w.component is not None else data)
+        out.append(Future(label, np.array([t for t, _r in got], dtype=np.int64) * dt / 1e9, picked))
+    return out
+
+
+@dataclass(frozen=True)
+class Panel:
+    """A panel: wanted signal ``k``'s columns ``columns``."""
+
+    k: int
+    columns: tuple[int, ...]
+
+
+def panels(values: list[np.ndarray], split: bool) -> list[Panel]:
+    """One panel per signal, or per component when ``split`` or when the scales differ (`SCALE_RATIO`)."""
+    out = []
+    for k, data in enumerate(values):
+        width = data.shape[1]
+        if width > 1 and (split or _scales_differ(data)):
+            out += [Panel(k, (i,)) for i in range(width)]
+        else:
+            out.append(Panel(k, tuple(range(width))))
+    return out
+
+
+def _scales_differ(data: np.ndarray) -> bool:
+    finite = np.where(np.isfinite(data), data, np.nan)
+    if not np.isfinite(finite).any(axis=0).all():
+        return False
+    ranges = np.nanmax(finite, axis=0) - np.nanmin(finite, axis=0)
+    moving = ranges[ranges > 0]  # a constant component is a flat line on any scale
+    return bool(len(moving) > 1 and moving.max() > SCALE_RATIO * moving.min())
+
+
+def _draw(out: str, index: LogIndex, wanted: list[Wanted], times: np.ndarray, values: list[np.ndarray],
+          futures: list[Future], options: PlotOptions) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(wanted), 1, sharex=True, figsize=(10, 2.6 * len(wanted) + 0.8), squeeze=False)
-    for ax, w, data in zip(axes[:, 0], wanted, values, strict=True):
-        if data.shape[1] == 1:
-            labels = [w.text if w.component is None or len(w.labels) <= w.component
-                      else w.signal + w.labels[w.component]]
-        else:
-            names = w.labels if len(w.labels) == data.shape[1] else [f"[{i}]" for i in range(data.shape[1])]
-            labels = [w.signal + n for n in names]
-        for i in range(data.shape[1]):
-            ax.plot(times, data[:, i], label=labels[i], linewidth=1.1)
-        ax.set_ylabel(w.unit if w.unit != "1" else "")
-        ax.legend(loc="upper right", fontsize="small")
-        ax.grid(alpha=0.3)
-    _mark_events(axes[:, 0], index)
+    laid = panels(values, options.split)
+    dt_s = (index.info.dt_ns if index.info else 1) / 1e9
+    found = results(index.events, dt_s) if options.expectations else []
+    strip = min(len(found), 12) * 0.22 + 0.4 if found else 0.0
+    heights = [2.4] * len(laid) + ([strip] if found else [])
+    fig, axes = plt.subplots(len(heights), 1, sharex=True, figsize=(10, sum(heights) + 0.9), squeeze=False,
+                             gridspec_kw={"height_ratios": heights})
+    plotted = axes[:len(laid), 0]
+    for ax, panel in zip(plotted, laid, strict=True):
+        _draw_panel(ax, wanted[panel.k], panel, times, values[panel.k], futures[:MAX_FUTURES])
+    marks = event_marks(index.events, None if options.events is None else list(options.events))
+    draw_events(list(plotted), marks, dt_s)
+    if found:
+        draw_results(axes[-1, 0], found)
+    if len(futures) > MAX_FUTURES:
+        plotted[0].annotate(f"{len(futures) - MAX_FUTURES} more imagined futures not drawn", xy=(0.005, 0.02),
+                            xycoords="axes fraction", fontsize="x-small", color="0.3")
     axes[-1, 0].set_xlabel("simulated time (s)")
     name = index.info.scenario_name if index.info and index.info.scenario_name else os.path.basename(index.path)
     fig.suptitle(name)
@@ -221,39 +317,25 @@ def _draw(out: str, index: LogIndex, wanted: list[Wanted], times: np.ndarray, va
         plt.close(fig)
 
 
-def _mark_events(axes, index: LogIndex) -> None:
-    """A vertical line per event (rollbacks dashed red); on the top panel, one label per group of events
-    closer together than 1/60 of the time axis, for at most `LABEL_GROUPS` groups."""
-    events = sorted(((float(ev.get("time", 0.0)), str(ev.get("kind", "?"))) for ev in index.events
-                     if ev.get("kind") not in SKIPPED_EVENTS), key=lambda e: e[0])
-    for t, kind in events:
-        rollback = kind == "rollback"
-        for ax in axes:
-            ax.axvline(t, color="tab:red" if rollback else "0.4", linestyle="--" if rollback else ":", linewidth=0.9)
-    if not events:
-        return
-    lo, hi = axes[0].get_xlim()
-    groups = event_groups(events, (hi - lo) / 60 if hi > lo else 0.0)
-    for t, label in groups[:LABEL_GROUPS]:
-        axes[0].annotate(label, xy=(t, 0.98), xycoords=("data", "axes fraction"), rotation=90,
-                         fontsize="x-small", va="top", ha="right", color="0.25",
-                         bbox={"boxstyle": "round,pad=0.1", "fc": "white", "ec": "none", "alpha": 0.7})
-    if len(groups) > LABEL_GROUPS:
-        axes[0].annotate(f"+{len(groups) - LABEL_GROUPS} more event groups", xy=(0.995, 0.02),
-                         xycoords="axes fraction", ha="right", va="bottom", fontsize="x-small", color="0.3")
-
-
-def event_groups(events: list[tuple[float, str]], gap: float) -> list[tuple[float, str]]:
-    """Events (time, kind), in time order -> one (time, label) per group of events less than ``gap``
-    after the group's first: ``set x3, param`` (most frequent first, at most 40 characters)."""
-    groups: list[list[tuple[float, str]]] = []
-    for t, kind in events:
-        if groups and t - groups[-1][0][0] <= gap:
-            groups[-1].append((t, kind))
-        else:
-            groups.append([(t, kind)])
-    out = []
-    for group in groups:
-        label = ", ".join(k if n == 1 else f"{k} x{n}" for k, n in Counter(k for _t, k in group).most_common())
-        out.append((group[0][0], label if len(label) <= 40 else label[:39] + "…"))
-    return out
+def _draw_panel(ax, w: Wanted, panel: Panel, times: np.ndarray, data: np.ndarray, futures: list[Future]) -> None:
+    """The run's lines of one panel (each its colour, dash and sparse markers) and the futures' dashed."""
+    width = data.shape[1]
+    if width == 1:
+        labels = [w.text if w.component is None or len(w.labels) <= w.component else w.signal + w.labels[w.component]]
+    else:
+        names = w.labels if len(w.labels) == width else [f"[{i}]" for i in range(width)]
+        labels = [w.signal + n for n in names]
+    every = max(1, len(times) // 12)
+    for n, i in enumerate(panel.columns):
+        color = f"C{i % 10}"
+        ax.plot(times, data[:, i], label=labels[i], color=color, linewidth=1.2, linestyle=_STYLES[n % len(_STYLES)],
+                marker=_MARKERS[n % len(_MARKERS)], markevery=(n * every // max(len(panel.columns), 1), every),
+                markersize=4, markerfacecolor="none")
+        for f, future in enumerate(futures):
+            got = future.values[panel.k]
+            if got is not None and len(future.times):
+                ax.plot(future.times, got[:, i], color=color, linewidth=1.0, alpha=0.8, linestyle=(0, (2, 2)),
+                        zorder=3, label="imagined" if n == 0 and f == 0 else None)  # on top: thin and dashed
+    ax.set_ylabel(w.unit if w.unit != "1" else "")
+    ax.legend(loc="upper right", fontsize="small")
+    ax.grid(alpha=0.3)
