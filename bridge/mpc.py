@@ -58,6 +58,7 @@ class RemoteMpc(Mpc):
         wire = {**params, f"{self.player}.plan": [np.asarray(p).tolist() for p in plans]}
         try:
             reply = self.world.batch(ticks, branches=branches, starts=start, params=wire, record=self.record,
+                                     inputs={n: v.tolist() for n, v in self._assumed(ticks).items()},
                                      timeout=max(60.0, ticks * branches * 1e-4))
         finally:
             self.world.drop_snapshot(start)

@@ -160,3 +160,17 @@ def test_mpc_of_a_world_served_over_zenoh():
         assert np.asarray(server.world.get("core.swing_pivot.q")).tobytes() == np.asarray(predicted).tobytes()
         with pytest.raises(MpcError, match=r"controls\['hip'\]"):
             RemoteMpc(brain, {"hip": Control(["servo.nothing.q_ref"], -1, 0)}, swing_energy)
+
+
+def test_futures_hold_what_the_brain_assumes_of_inputs_it_does_not_control(seated):
+    mpc = Mpc(seated, legs(), swing_energy, record=[*PIVOT, "servo.l_elbow.q_ref"], horizon="0.1s", knots=2,
+              samples=2, backend="serial", assume={"servo.l_elbow.q_ref": 0.5})
+    try:
+        plan = mpc.replan()
+        assert np.all(plan.signals["servo.l_elbow.q_ref"] == 0.5) and seated.get("servo.l_elbow.q_ref") == 0.0
+    finally:
+        mpc.close()
+    with pytest.raises(MpcError, match=r"assume\['servo.l_elbow.q_ref'\] has shape \(2,\)"):
+        Mpc(seated, legs(), swing_energy, backend="serial", assume={"servo.l_elbow.q_ref": [0.0, 0.0]})
+    with pytest.raises(MpcError, match=r"assume: 'servo.kp' is a parameter"):
+        Mpc(seated, legs(), swing_energy, backend="serial", assume={"servo.kp": 1.0})

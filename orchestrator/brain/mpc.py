@@ -29,7 +29,9 @@ first rows skipped); how far behind real time the planner is shows in `MpcStats`
 
 Robust to what the brain does not know: ``randomize`` draws values of run-time parameters (friction,
 a servo gain) for ``draws`` variants of every sample; a sample's cost is the ``aggregate`` over them
-(the mean, the worst, or the CVaR: the mean of the worst ``cvar`` fraction).
+(the mean, the worst, or the CVaR: the mean of the worst ``cvar`` fraction). What the brain assumes of
+inputs it does not control is ``assume`` (port -> value held in every future: a push it felt is not
+assumed to go on; without it a future starts with the inputs as the world has them now).
 
 Each replan's chosen future (the best sample's recorded signals) is kept as a future the world
 imagined (`World.imagine`), which a logged run writes to ``/imagined/<name>/0/...``.
@@ -154,6 +156,7 @@ class Mpc:
                  record: Sequence[str] = (), horizon: int | float | str = "1s", knots: int = 4, samples: int = 32,
                  method: str = "mppi", iterations: int = 1, elite: float = 0.25, temperature: float = 0.1,
                  randomize: Mapping[str, tuple[float, float]] | None = None, draws: int = 1,
+                 assume: Mapping[str, Any] | None = None,
                  aggregate: str = "mean", cvar: float = 0.25, batch: Batch | None = None, backend: str = "auto",
                  player: str = "mpc", seed: int = 0, name: str = "mpc"):
         self.world = world
@@ -166,6 +169,7 @@ class Mpc:
         self.knots, self.samples, self.method = int(knots), int(samples), method
         self.iterations, self.elite, self.temperature = int(iterations), float(elite), float(temperature)
         self.randomize = dict(randomize or {})
+        self.assume = {name: np.asarray(value, dtype=np.float64) for name, value in (assume or {}).items()}
         self.draws, self.aggregate, self.cvar = int(draws), aggregate, float(cvar)
         self.player, self.name = player, name
         self.rng = np.random.default_rng(seed)
@@ -207,8 +211,12 @@ class Mpc:
                  params: dict[str, Any]) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Run ``branches`` futures from ``start``; (recorded signals, which branches ran to the end)."""
         result = self.batch.run(ticks, branches=branches, starts=start, params=params, record=self.record,
-                                keep_states=False)
+                                inputs=self._assumed(ticks), keep_states=False)
         return result.signals, np.array([s.ok for s in result.status])
+
+    def _assumed(self, ticks: int) -> dict[str, np.ndarray]:
+        """The ``assume`` inputs held over ``ticks`` ticks of every future."""
+        return {name: np.broadcast_to(value, (ticks, *value.shape)) for name, value in self.assume.items()}
 
     # -- set-up -------------------------------------------------------------------------------------------
     def _check_world(self) -> None:
@@ -241,6 +249,16 @@ class Mpc:
                 self.world.signal_shape(name)
             except DynabrainError as exc:
                 raise MpcError(f"mpc: record: {exc}") from None
+        for name, value in self.assume.items():
+            try:
+                target = self.world.settable(name)
+            except DynabrainError as exc:
+                raise MpcError(f"mpc: assume: {exc}") from None
+            if not isinstance(target, str):
+                raise MpcError(f"mpc: assume: {name!r} is a parameter; assume holds input ports")
+            if value.shape != self.world.signal_shape(target):
+                raise MpcError(f"mpc: assume[{name!r}] has shape {value.shape}; the port's is "
+                               f"{self.world.signal_shape(target)}")
         for name, bounds in self.randomize.items():
             if self.world.material_target(name) is None:
                 try:
