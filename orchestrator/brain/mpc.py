@@ -180,10 +180,7 @@ class Mpc:
                                else 0.25 * (h - lo) for c, lo, h in zip(self.channels, self.low, self.high,
                                                                           strict=True)])
         self._attach()
-        self.mean = np.tile(np.clip(self._held(), self.low, self.high), (self.knots, 1))
-        self.std = np.tile(self.noise, (self.knots, 1))
-        self._plan_start_tick = self._now()
-        self._plan_values = np.tile(self.mean[0], (self.horizon, 1))
+        self.reset()
         self._own_batch = batch is None
         self.batch = batch if batch is not None else self._make_batch(backend)
         self.stats = MpcStats()
@@ -311,6 +308,14 @@ class Mpc:
             if p.name == name:
                 return p.unit
         return "1"
+
+    def reset(self) -> None:
+        """Forget the plan: start again from the controlled ports' values now (after the world was restored
+        to an earlier state, a warm start from a plan made for another time would jolt it)."""
+        self.mean = np.tile(np.clip(self._held(), self.low, self.high), (self.knots, 1))
+        self.std = np.tile(self.noise, (self.knots, 1))
+        self._plan_start_tick = self._now()
+        self._plan_values = np.tile(self.mean[0], (self.horizon, 1))
 
     # -- one replan -----------------------------------------------------------------------------------------
     def values(self, knots: np.ndarray) -> np.ndarray:
