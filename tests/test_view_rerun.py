@@ -3,7 +3,8 @@ pushes on a slider, two of them kept as imagined futures) becomes a Rerun record
 their poses, the signals, the events and each imagined future under entity paths of its own (read back with
 the ``rerun`` program); the recording served on loopback by `serve_rrd`, opened in headless Chromium (Debian's
 ``chromium``) and screenshot through the DevTools protocol shows the scene: the bodies' colours in the 3D
-view's region, not an empty view. One browser, started once (the suite's heavy check)."""
+view's region, not an empty view. The same browser then opens a running world streamed by `RerunLive`
+(``serve --view``): the blocks on their table. One browser, started once (the suite's heavy check)."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import subprocess
 import time
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,6 +26,7 @@ rr = pytest.importorskip("rerun", reason="rerun-sdk is not installed (the [view]
 
 from dynabrain.orchestrator import Batch  # noqa: E402
 from dynabrain.orchestrator.logs.logger import McapLogger  # noqa: E402
+from dynabrain.orchestrator.logs.rerun_live import RerunLive  # noqa: E402
 from dynabrain.orchestrator.logs.rerun_view import record_log, rerun_program, serve_rrd, viewer_url  # noqa: E402
 from dynabrain.orchestrator.scenario.model import load_scenario  # noqa: E402
 
@@ -31,6 +34,9 @@ ROOT = Path(__file__).resolve().parents[1]
 TESTS = Path(__file__).resolve().parent
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 BROWSER_WAIT_S = 25.0
+BODY_PIXELS = 400
+"""Saturated pixels in the 3D view's region that say bodies are drawn (an empty view, or one still loading,
+has none: its greys, whites and the loading screen's dark)."""
 
 
 @pytest.fixture(scope="module")
@@ -100,25 +106,49 @@ class DevTools:
         while not active.exists() or not active.read_text().strip():
             assert time.monotonic() < end and self.proc.poll() is None, "chromium did not start its DevTools server"
             time.sleep(0.1)
-        port = int(active.read_text().split()[0])
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as resp:
+        self.port = int(active.read_text().split()[0])
+        with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/json/list", timeout=10) as resp:
             page = next(p for p in json.load(resp) if p.get("type") == "page")
+        self.ws: Any = None
+        self._connect(page["webSocketDebuggerUrl"])
+
+    def _connect(self, url: str) -> None:
         from websockets.sync.client import connect
 
-        self.ws = connect(page["webSocketDebuggerUrl"], max_size=None).__enter__()
+        if self.ws is not None:
+            self.ws.__exit__(None, None, None)
+        self.ws = connect(url, max_size=None).__enter__()
         self.calls = 0
+
+    def open(self, url: str) -> None:
+        """A new page at ``url`` (another origin: a page of its own), screenshot from now on."""
+        request = urllib.request.Request(f"http://127.0.0.1:{self.port}/json/new?{url}", method="PUT")
+        with urllib.request.urlopen(request, timeout=10) as resp:
+            self._connect(json.load(resp)["webSocketDebuggerUrl"])
+
+    def call(self, method: str, params: dict) -> dict:
+        self.calls += 1
+        self.ws.send(json.dumps({"id": self.calls, "method": method, "params": params}))
+        while True:
+            reply = json.loads(self.ws.recv(timeout=30))
+            if reply.get("id") == self.calls:
+                assert "error" not in reply, f"{method}: {reply['error']}"
+                return reply["result"]
+
+    def shows_bodies(self, until: float) -> tuple[bool, np.ndarray]:
+        """Screenshots until the 3D view shows bodies (`body_pixels`) or ``until`` (monotonic time) passes."""
+        image = self.screenshot()
+        while body_pixels(image) < BODY_PIXELS and time.monotonic() < until:
+            time.sleep(0.5)
+            image = self.screenshot()
+        return body_pixels(image) >= BODY_PIXELS, image
 
     def screenshot(self) -> np.ndarray:
         """The page as an (h, w, 3) uint8 image."""
         from PIL import Image
 
-        self.calls += 1
-        self.ws.send(json.dumps({"id": self.calls, "method": "Page.captureScreenshot", "params": {"format": "png"}}))
-        while True:
-            reply = json.loads(self.ws.recv(timeout=30))
-            if reply.get("id") == self.calls:
-                png = base64.b64decode(reply["result"]["data"])
-                return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
+        png = base64.b64decode(self.call("Page.captureScreenshot", {"format": "png"})["data"])
+        return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))
 
     def close(self) -> None:
         self.ws.__exit__(None, None, None)
@@ -136,31 +166,41 @@ def body_pixels(image: np.ndarray) -> int:
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no chromium on PATH (make system-deps installs Debian's package)")
-def test_web_viewer_shows_the_scene(logs, tmp_path):
+def test_web_viewer_shows_the_scene_of_a_log_and_of_a_running_world(logs, tmp_path):
+    from PIL import Image
+
     arm, _slider = logs
     record_log(arm, tmp_path / "arm.rrd")
     web, grpc = _free_port(), _free_port()
     server = serve_rrd(tmp_path / "arm.rrd", web_port=web, grpc_port=grpc)
-    browser = None
+    browser = live = world = None
     try:
         end = time.monotonic() + BROWSER_WAIT_S
         while socket.socket().connect_ex(("127.0.0.1", web)) != 0:
             assert time.monotonic() < end and server.poll() is None, "the rerun web viewer did not start"
             time.sleep(0.1)
         browser = DevTools(viewer_url(web, grpc), tmp_path / "profile")
-        first = browser.screenshot()  # the viewer is still loading: no scene yet
-        image, seen = first, body_pixels(first)
-        while seen < 400 and time.monotonic() < end:
-            time.sleep(0.5)
-            image = browser.screenshot()
-            seen = body_pixels(image)
-        from PIL import Image
+        loading = body_pixels(browser.screenshot())  # the viewer is still loading: no scene yet
+        shown, image = browser.shows_bodies(end)
+        Image.fromarray(image).save(tmp_path / "log.png")
+        assert shown, f"the 3D view shows no bodies after {BROWSER_WAIT_S} s (see {tmp_path / 'log.png'})"
+        assert loading < BODY_PIXELS
 
-        Image.fromarray(image).save(tmp_path / "viewer.png")
-        assert seen >= 400, f"the 3D view shows no bodies after {BROWSER_WAIT_S} s (see {tmp_path / 'viewer.png'})"
-        assert body_pixels(first) < seen
+        blocks = load_scenario(ROOT / "scenarios" / "blocks.yaml")  # coloured blocks on a table
+        world = blocks.build()
+        live = RerunLive(web_port=_free_port(), grpc_port=_free_port()).attach(world)
+        world.tick(100)
+        assert live.sent >= 4
+        browser.open(live.url)
+        shown, image = browser.shows_bodies(time.monotonic() + BROWSER_WAIT_S)
+        Image.fromarray(image).save(tmp_path / "live.png")
+        assert shown, f"the live 3D view shows no bodies (see {tmp_path / 'live.png'})"
     finally:
         if browser is not None:
             browser.close()
+        if world is not None:
+            world.close()  # closes the live stream (an observer) too
+        if live is not None:
+            live.close()
         server.kill()
         server.wait()

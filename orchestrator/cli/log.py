@@ -148,6 +148,16 @@ def view_after_run(log: str, port: int, *, temporary: bool) -> None:
             shutil.rmtree(os.path.dirname(log), ignore_errors=True)
 
 
+def start_rerun_live(world: Any, port: int) -> Any:
+    """``serve --view``: the world streamed to Rerun's web viewer (`logs.rerun_live.RerunLive`), its address
+    printed; the caller closes it."""
+    from ..logs.rerun_live import RerunLive
+
+    live = RerunLive(web_port=_port_or_free(port), grpc_port=_port_or_free(0)).attach(world)
+    print(f"rerun: open {live.url}", flush=True)
+    return live
+
+
 def _serve_rerun(rrd: Path, port: int) -> None:
     import socket
     import time

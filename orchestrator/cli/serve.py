@@ -15,7 +15,7 @@ import typer
 from ..kernel.errors import DynabrainError, ScenarioError
 from ..kernel.units import parse_duration_ns
 from .common import fail_scenario, load_or_exit
-from .log import LivePortOpt, live_options
+from .log import VIEW_PORT, LivePortOpt, ViewPortOpt, live_options, start_rerun_live
 from .log import live_rate as live_rate_text
 
 ListenOpt = Annotated[list[str] | None, typer.Option(
@@ -135,8 +135,13 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
                              "events as brains drive it")] = False,
           live_port: LivePortOpt = None,
           live_rate: Annotated[float, typer.Option(
-              "--live-rate", min=0.0, help="--live: ticks sent per simulated second (0: every tick)")] = 0.0) -> None:
-    """Serve a world over Zenoh to remote brains (and robots) until interrupted; --live also to Foxglove."""
+              "--live-rate", min=0.0, help="--live: ticks sent per simulated second (0: every tick)")] = 0.0,
+          view: Annotated[bool, typer.Option(
+              "--view", help="also stream the world to Rerun's web viewer (loopback): bodies, signals, events and "
+                             "the futures brains imagine")] = False,
+          view_port: ViewPortOpt = VIEW_PORT) -> None:
+    """Serve a world over Zenoh to remote brains (and robots) until interrupted; --live also to Foxglove,
+    --view to Rerun."""
     from dynabrain.bridge.batching import BatchSettings
     from dynabrain.bridge.calls import DEFAULT_ALLOW_PYTHON
     from dynabrain.bridge.server import BridgeServer, ServeOptions
@@ -153,8 +158,10 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
                            tokenless_lease_s=_positive_seconds(tokenless_lease, "--tokenless-lease"),
                            trial_params=trial_params, ros2=ros2_options, live=live_opts)
     server = BridgeServer(world, settings, options)
+    rerun = None
     try:
         endpoints = server.open()
+        rerun = start_rerun_live(world, view_port) if view else None
         if server.live is not None:
             print(f"live view: {server.live.url} (Foxglove: Open connection > Foxglove WebSocket), "
                   f"{live_rate_text(server.live.every, world.dt_ns)}", flush=True)
@@ -169,6 +176,8 @@ def serve(scenario: Annotated[Path, typer.Argument(help="scenario YAML file")],
                   flush=True)
         _wait_for_signal(threading.Event())
     finally:
+        if rerun is not None:
+            rerun.close()
         server.close()
         world.close()
 

@@ -16,7 +16,8 @@
   entities of its own, drawn beside what happened (translucent, as the log draws them) from the tick it
   starts at to its last, then cleared.
 
-`serve_rrd` shows a recording in Rerun's web viewer: the ``rerun`` program that rerun-sdk installs, serving
+`rerun_live.RerunLive` streams a running world the same way (``serve --view``). `serve_rrd` shows a recording
+in Rerun's web viewer: the ``rerun`` program that rerun-sdk installs, serving
 the viewer and the recording on loopback only (``--bind 127.0.0.1``).
 """
 
@@ -82,7 +83,7 @@ def record_log(path: str | os.PathLike[str], out: str | os.PathLike[str]) -> Vie
     name = index.info.scenario_name if index.info and index.info.scenario_name else os.path.basename(index.path)
     rec = rr.RecordingStream("dynabrain")
     rec.send_recording_name(name)
-    rec.save(os.fspath(out), default_blueprint=_blueprint())
+    rec.save(os.fspath(out), default_blueprint=blueprint())
     report = ViewReport()
     rec.log(WORLD, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     rec.log("imagined", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -99,7 +100,7 @@ def record_log(path: str | os.PathLike[str], out: str | os.PathLike[str]) -> Vie
     return report
 
 
-def _blueprint() -> Any:
+def blueprint() -> Any:
     import rerun.blueprint as rrb
 
     return rrb.Blueprint(
@@ -129,7 +130,7 @@ def _read_messages(rr: Any, rec: Any, index: LogIndex, dt_s: float, report: View
             scenes.append((t_s, prefix, SceneUpdate.FromString(msg.data)))
         elif (topic == TOPIC_TF and pos in final_tf) or (prefix and topic == prefix + TOPIC_TF):
             for tf in FrameTransforms.FromString(msg.data).transforms:
-                got = poses.setdefault(_entity_path(tf.child_frame_id, prefix), _Poses())
+                got = poses.setdefault(entity_path(tf.child_frame_id, prefix), _Poses())
                 got.times_s.append(t_s)
                 got.translations.append((tf.translation.x, tf.translation.y, tf.translation.z))
                 got.quaternions_xyzw.append((tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w))
@@ -141,7 +142,7 @@ def _read_messages(rr: Any, rec: Any, index: LogIndex, dt_s: float, report: View
     for t_s, prefix, update in scenes:
         rec.set_time(TIMELINE, duration=t_s)
         for entity in update.entities:
-            report.bodies += _draw_entity(rr, rec, _entity_path(entity.id, prefix), entity, plane_m)
+            report.bodies += draw_entity(rr, rec, entity_path(entity.id, prefix), entity, plane_m)
     for prefix, end_s in imagined_ends.items():  # a future is shown from its start to its last tick
         rec.set_time(TIMELINE, duration=end_s + dt_s)
         rec.log(prefix.strip("/"), rr.Clear(recursive=True))
@@ -172,7 +173,7 @@ def _imagined_prefix(topic: str) -> str:
     return head if head.count("/") == 3 else ""
 
 
-def _entity_path(frame: str, prefix: str) -> str:
+def entity_path(frame: str, prefix: str) -> str:
     """The entity path of a frame: ``world/<body>``, or for an imagined frame (``imagined/push/0/cart``) that
     frame itself."""
     import rerun as rr
@@ -183,7 +184,7 @@ def _entity_path(frame: str, prefix: str) -> str:
     return f"{WORLD}/{rr.escape_entity_path_part(frame)}"
 
 
-def _draw_entity(rr: Any, rec: Any, path: str, entity: Any, plane_m: float) -> int:
+def draw_entity(rr: Any, rec: Any, path: str, entity: Any, plane_m: float) -> int:
     """One ``foxglove.SceneEntity``'s primitives under ``path`` (in its frame), an infinite plane's slab
     ``plane_m`` square; 1 if it drew anything."""
     drawn = 0
@@ -261,10 +262,15 @@ def _signals(rr: Any, rec: Any, index: LogIndex, dt_s: float, report: ViewReport
         report.signals += 1
 
 
+def signal_path(root: str, name: str) -> str:
+    """``signals`` and ``core.cart.pos`` -> ``signals/core/cart/pos``."""
+    return root + "/" + "/".join(_escape(p) for p in name.split("."))
+
+
 def _add_row(series: dict, root: str, codec: BusCodec, t_s: float, row: np.ndarray) -> None:
     for slot in codec.slots:
         if 0 < slot.size <= MAX_COMPONENTS:
-            path = root + "/" + "/".join(_escape(p) for p in slot.name.split("."))
+            path = signal_path(root, slot.name)
             times, values = series.setdefault(path, ([], []))
             times.append(t_s)
             values.append(row[slot.offset:slot.offset + slot.size])
@@ -295,14 +301,18 @@ def _events(rr: Any, rec: Any, index: LogIndex, report: ViewReport) -> None:
         report.events += 1
 
 
-def serve_rrd(rrd: str | os.PathLike[str], *, web_port: int = 9090, grpc_port: int = 9876) -> subprocess.Popen:
-    """Rerun's web viewer for ``rrd``, served on loopback by the ``rerun`` program (a child process, ended
-    with this one on Linux; the caller ends it). Open ``viewer_url(web_port, grpc_port)`` in a browser."""
+def serve_rrd(rrd: str | os.PathLike[str] | None, *, web_port: int = 9090, grpc_port: int = 9876
+              ) -> subprocess.Popen:
+    """Rerun's web viewer for ``rrd`` (None: for what an SDK sends to ``grpc_port``, `rerun_live`), served on
+    loopback by the ``rerun`` program (a child process; the caller ends it: no ``preexec_fn`` ties it to this
+    process, as that can deadlock a process with threads, the bridge's). Open ``viewer_url(web_port,
+    grpc_port)`` in a browser."""
     require_rerun()
+    files = [os.fspath(rrd)] if rrd is not None else []
     return subprocess.Popen([rerun_program(), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port",
-                             str(web_port), "--port", str(grpc_port), os.fspath(rrd)],
+                             str(web_port), "--port", str(grpc_port), *files],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
-                            preexec_fn=_end_with_parent if sys.platform == "linux" else None)
+                            start_new_session=True)  # a Ctrl-C is ours: the stream is flushed before it ends
 
 
 def rerun_program() -> str:
@@ -320,15 +330,6 @@ def rerun_program() -> str:
     if exe is None:
         raise DynabrainError("the rerun program (installed with rerun-sdk) is not found")
     return exe
-
-
-def _end_with_parent() -> None:
-    """In the child, before exec: end when the parent ends (PR_SET_PDEATHSIG), so that a killed ``view``
-    leaves no server behind."""
-    import ctypes
-    import signal
-
-    ctypes.CDLL(None).prctl(1, signal.SIGTERM)
 
 
 def viewer_url(web_port: int, grpc_port: int) -> str:
