@@ -50,8 +50,7 @@ def require_rerun() -> Any:
     try:
         import rerun
     except ImportError:
-        raise DynabrainError("viewing in Rerun needs rerun-sdk: pip install 'dynabrain[view]' "
-                             "(or pip install rerun-sdk)") from None
+        raise DynabrainError("viewing in Rerun needs the rerun-sdk package: pip install rerun-sdk") from None
     return rerun
 
 
