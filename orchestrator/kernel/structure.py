@@ -12,7 +12,9 @@ The schedule (the master algorithm, Gauss-Seidel): at each tick,
    copied from their sources, which have already stepped this tick.
 A connection is delayed when written so (``delay: true``) or when its source module is not
 feedthrough (its outputs come from its state: a physics core). Direct connections must form no
-cycle; a cycle is an algebraic loop and is reported with its path. The world runs the schedule as one
+cycle; a cycle is an algebraic loop and is reported with its path, unless its modules are declared a
+loop to ``iterate`` (`orchestrator.kernel.iterate`: the loop is one entry of the schedule, its macro
+step repeated from the saved states until its values agree). The world runs the schedule as one
 generated function per structure (`Structure.compiled`, see `orchestrator.kernel.compiled`), or, when
 made with ``compiled=False``, as a plain loop over the same entries (`Structure.plain`).
 """
@@ -31,6 +33,7 @@ import numpy as np
 from .compiled import CompiledTick, PlainTick
 from .errors import AlgebraicLoopError, WiringError
 from .finite import OutputCheck
+from .iterate import LoopRunner, LoopSpec, check_loops, plan_loop
 from .module import NO_PORTS, Module, Port, PortBinding
 from .suggest import did_you_mean
 from .units import same_unit
@@ -217,6 +220,14 @@ class Structure:
     saves: tuple[int, ...] = ()
     """What history saves of each record's module, in record order: `SAVE_STATE` (its ``get_state``),
     `SAVE_PARAMS` (only its parameters: the base ``get_state``) or `SAVE_NONE` (it cannot roll back)."""
+    loops: tuple[LoopSpec, ...] = ()
+    """Loops declared ``iterate`` (`orchestrator.kernel.iterate`): each is one entry of ``dispatch``,
+    its members' steps run by a `LoopRunner` until the loop's values agree."""
+
+    @property
+    def runners(self) -> tuple[LoopRunner, ...]:
+        """The dispatch entries that run a loop (a world binds them to its bus)."""
+        return tuple(e.step for e in self.dispatch if isinstance(e.step, LoopRunner))
 
     @functools.cached_property
     def compiled(self) -> CompiledTick:
@@ -251,10 +262,14 @@ class Structure:
         return None
 
 
-def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Connection]) -> Structure:
-    """Check modules and connections and derive layout and schedule; raises `WiringError`."""
+def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Connection],
+                    loops: Iterable[LoopSpec] = ()) -> Structure:
+    """Check modules and connections and derive layout and schedule; raises `WiringError`. ``loops``:
+    loops declared ``iterate``, whose direct connections among their members may form cycles: each is
+    scheduled as one entry (`orchestrator.kernel.iterate`)."""
     records = tuple(records)
     connections = tuple(connections)
+    loops = tuple(loops)
     by_name: dict[str, ModuleRecord] = {}
     for rec in records:
         if rec.name in by_name:
@@ -264,19 +279,28 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
     for conn in connections:
         _check_connection(conn, layout, by_name)
     _check_single_driver(connections)
-    order = _order(records, connections, by_name)
-    plan = []
-    for rec in order:
-        direct = [c for c in connections if not c.delay and split_signal(c.dst)[0] == rec.name
-                  and by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
-        plan.append(Step(rec, _copies(layout, direct)))
+    loop_of = check_loops(loops, by_name)
+    order = _order(records, connections, by_name, loop_of)
+    direct = [c for c in connections if not c.delay and by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
+    plan, dispatch = [], []
+    for item in order:
+        members = [by_name[m] for m in item.modules] if isinstance(item, LoopSpec) else [item]
+        for rec in members:
+            plan.append(Step(rec, _copies(layout, [c for c in direct if split_signal(c.dst)[0] == rec.name])))
+        if isinstance(item, LoopSpec):  # the loop's members run by its runner, one entry
+            runner, outside = plan_loop(item, by_name, direct, layout.slots)
+            first = members[0]
+            dispatch.append(Dispatch(item.name, runner, int(first.period_ns), int(first.period_ticks), int(first.phase),
+                                     *_split_gather(_copies(layout, outside))))
+        else:
+            st = plan[-1]
+            dispatch.append(Dispatch(item.name, item.module.step, int(item.period_ns), int(item.period_ticks),
+                                     int(item.phase), *_split_gather(st.copies)))
     delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
-    dispatch = tuple(Dispatch(st.record.name, st.record.module.step, int(st.record.period_ns),
-                              int(st.record.period_ticks), int(st.record.phase), *_split_gather(st.copies))
-                     for st in plan)
     delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
     saves = tuple(_save_kind(rec.module) for rec in records)
-    return Structure(records, connections, layout, tuple(plan), delayed_mv, dispatch, delayed_gather, saves)
+    return Structure(records, connections, layout, tuple(plan), delayed_mv, tuple(dispatch), delayed_gather, saves,
+                     loops)
 
 
 def rebind_structure(structure: Structure, modules: Mapping[str, Module]) -> Structure:
@@ -293,10 +317,11 @@ def rebind_structure(structure: Structure, modules: Mapping[str, Module]) -> Str
             raise WiringError(f"module {old.name!r}: its copy is a {type(new.module).__name__}, "
                               f"not a {type(old.module).__name__}")
     plan = tuple(Step(by_name[st.record.name], st.copies) for st in structure.plan)
-    dispatch = tuple(entry._replace(step=by_name[entry.name].module.step) for entry in structure.dispatch)
+    dispatch = tuple(entry._replace(step=entry.step.rebound(modules) if isinstance(entry.step, LoopRunner)
+                                    else by_name[entry.name].module.step) for entry in structure.dispatch)
     saves = tuple(_save_kind(rec.module) for rec in records)
     return Structure(records, structure.connections, structure.layout, plan, structure.delayed, dispatch,
-                     structure.delayed_gather, saves)
+                     structure.delayed_gather, saves, structure.loops)
 
 
 class _Unrestorable:
@@ -379,28 +404,39 @@ def _check_single_driver(connections: Sequence[Connection]) -> None:
 
 
 def _order(records: tuple[ModuleRecord, ...], connections: tuple[Connection, ...],
-           by_name: dict[str, ModuleRecord]) -> list[ModuleRecord]:
-    """Topological order of direct connections, ties broken by the order modules were added."""
-    index = {rec.name: i for i, rec in enumerate(records)}
-    succ: dict[str, list[tuple[str, Connection]]] = {rec.name: [] for rec in records}
-    indeg = {rec.name: 0 for rec in records}
+           by_name: dict[str, ModuleRecord], loop_of: Mapping[str, LoopSpec]) -> list[ModuleRecord | LoopSpec]:
+    """Topological order of direct connections, ties broken by the order modules were added. A loop
+    declared ``iterate`` is one node (where its first-added member is); connections among its members
+    are left to it."""
+    node = {rec.name: loop_of[rec.name].name if rec.name in loop_of else rec.name for rec in records}
+    items: dict[str, ModuleRecord | LoopSpec] = {}
+    index: dict[str, int] = {}
+    for i, rec in enumerate(records):
+        if node[rec.name] not in items:
+            items[node[rec.name]] = loop_of.get(rec.name, rec)
+            index[node[rec.name]] = i
+    succ: dict[str, list[tuple[str, Connection]]] = {n: [] for n in items}
+    indeg = dict.fromkeys(items, 0)
     for conn in connections:
-        src_mod, dst_mod = split_signal(conn.src)[0], split_signal(conn.dst)[0]
-        if conn.delay or not by_name[src_mod].module.CAPABILITIES.feedthrough:
+        src_mod, dst_mod = node[split_signal(conn.src)[0]], node[split_signal(conn.dst)[0]]
+        if conn.delay or not by_name[split_signal(conn.src)[0]].module.CAPABILITIES.feedthrough:
             continue
+        if src_mod == dst_mod and src_mod in {loop.name for loop in loop_of.values()}:
+            continue  # inside a loop: its runner iterates it
         succ[src_mod].append((dst_mod, conn))
         indeg[dst_mod] += 1
+    by_index = {i: n for n, i in index.items()}
     ready = [index[n] for n, d in indeg.items() if d == 0]
     heapq.heapify(ready)
-    order: list[ModuleRecord] = []
+    order: list[ModuleRecord | LoopSpec] = []
     while ready:
-        rec = records[heapq.heappop(ready)]
-        order.append(rec)
-        for dst_mod, _ in succ[rec.name]:
+        name = by_index[heapq.heappop(ready)]
+        order.append(items[name])
+        for dst_mod, _ in succ[name]:
             indeg[dst_mod] -= 1
             if indeg[dst_mod] == 0:
                 heapq.heappush(ready, index[dst_mod])
-    if len(order) < len(records):
+    if len(order) < len(items):
         raise AlgebraicLoopError(_find_cycle(succ, {n for n, d in indeg.items() if d > 0}))
     return order
 

@@ -40,6 +40,7 @@ from .compiled import CompiledTick, PlainTick, compiled_by_default, state_saver
 from .core import KEEP, MAKE_OTHERS, BodySpec, PhysicsCore
 from .errors import DynabrainError, ForkError, ModuleError, RollbackError, WiringError, WorldClosedError
 from .history import History, WorldState
+from .iterate import LoopReport, LoopSpec, loops_without
 from .module import Module, SetupContext
 from .observers import Imagined, Observer, WorldEvent, WorldView
 from .structure import (
@@ -479,7 +480,8 @@ class World:
                                       self._tick % (period_ns // self.dt_ns), period_ns,
                                       tuple(module.inputs()), tuple(module.outputs()))
                 conns = [as_connection(c) for c in connect]
-                new = build_structure((*self._structure.records, record), (*self._structure.connections, *conns))
+                new = build_structure((*self._structure.records, record), (*self._structure.connections, *conns),
+                                      self._structure.loops)
             except BaseException:
                 _close_quietly(module)
                 raise
@@ -509,7 +511,8 @@ class World:
             records = [r for r in self._structure.records if r.name != name]
             conns = [c for c in self._structure.connections
                      if split_signal(c.src)[0] != name and split_signal(c.dst)[0] != name]
-            self._install(build_structure(records, conns), carry_values=True)
+            self._install(build_structure(records, conns, loops_without(self._structure.loops, name)),
+                          carry_values=True)
             self._dirty = True
             self._emit("module_removed", module=name)
 
@@ -518,10 +521,35 @@ class World:
         with self._lock:
             self._check_open()
             conn = Connection(src, dst, delay)
-            self._install(build_structure(self._structure.records, (*self._structure.connections, conn)),
-                          carry_values=True)
+            self._install(build_structure(self._structure.records, (*self._structure.connections, conn),
+                                          self._structure.loops), carry_values=True)
             self._dirty = True
             self._emit("connect", src=src, dst=dst, delay=delay)
+
+    def iterate(self, modules: Sequence[str], *, name: str | None = None, tolerance: float = 1e-9,
+                max_iterations: int = 50) -> LoopSpec:
+        """Declare ``modules`` (feedthrough, able to roll back, stepping at the same ticks) a loop whose
+        direct connections among each other may form cycles (strong coupling, issue 28): each macro step
+        is stepped again from their saved states until the torn values agree within ``tolerance``
+        (relative, plus as much absolute), at most ``max_iterations`` times; else the tick fails with
+        `LoopNotConvergedError` and is rolled back. ``modules`` step in the order given. Declare the loop
+        before connecting it. See `orchestrator.kernel.iterate`."""
+        with self._lock:
+            self._check_open()
+            spec = LoopSpec(name or "loop_" + "_".join(modules), tuple(modules), float(tolerance), max_iterations)
+            self._install(build_structure(self._structure.records, self._structure.connections,
+                                          (*self._structure.loops, spec)), carry_values=True)
+            self._dirty = True
+            self._emit("iterate_declared", loop=spec.name, modules=list(spec.modules), tolerance=spec.tolerance,
+                       max_iterations=spec.max_iterations)
+            return spec
+
+    def loop_report(self, name: str) -> LoopReport | None:
+        """How the last macro step of loop ``name`` went (iterations, residual, converged), or None."""
+        for runner in self._structure.runners:
+            if runner.spec.name == name:
+                return runner.last
+        raise WiringError(f"no loop {name!r}" + did_you_mean(name, [r.spec.name for r in self._structure.runners]))
 
     def disconnect(self, dst: str) -> None:
         """Remove the connection driving input ``dst`` (it keeps its last value)."""
@@ -530,7 +558,7 @@ class World:
             if self._structure.driver_of(dst) is None:
                 raise WiringError(f"no connection drives {dst!r}")
             conns = [c for c in self._structure.connections if c.dst != dst]
-            self._install(build_structure(self._structure.records, conns), carry_values=True)
+            self._install(build_structure(self._structure.records, conns, self._structure.loops), carry_values=True)
             self._dirty = True
             self._emit("disconnect", dst=dst)
 
@@ -562,6 +590,8 @@ class World:
         for rec in structure.records:
             rec.module.bind_ports(structure.layout.modules[rec.name].binding(buf, self._ro, self._param_changed))
             rec.module.bind()
+        for runner in structure.runners:  # iterate (issue 28): a loop's runner steps its members on this bus
+            runner.bind(buf, self._emit)
 
     # -- scene edits (delegated to the core; part of its state) ----------------------------------------
     def make(self, objects: Iterable[str], others: str = "frozen") -> None:
@@ -665,7 +695,8 @@ class World:
         gone = [c for c in self._structure.connections
                 if any(end.startswith(prefix) and end not in names for end in (c.src, c.dst))]
         records = [dataclasses.replace(r, inputs=ins, outputs=outs) if r is rec else r for r in self._structure.records]
-        structure = build_structure(records, [c for c in self._structure.connections if c not in gone])
+        structure = build_structure(records, [c for c in self._structure.connections if c not in gone],
+                                    self._structure.loops)
         self._install(structure, carry_values=True)
         core.refresh_outputs()
         self._dirty = True
@@ -1151,7 +1182,8 @@ class World:
                                            if cls == entry.cls else ""))
                 records.append(ModuleRecord(entry.name, module, entry.period_ns // self.dt_ns, entry.phase,
                                             entry.period_ns, inputs, outputs))
-            structure = build_structure(records, [Connection(s, d, x) for s, d, x in ps.connections])
+            structure = build_structure(records, [Connection(s, d, x) for s, d, x in ps.connections],
+                                        self._structure.loops)  # (loops: this world's, built the same way)
         except BaseException:
             for module in made:
                 _close_quietly(module)

@@ -90,6 +90,16 @@ class ModuleCfg(_Strict):
     connect: list[list[Any]] = []
 
 
+class IterateCfg(_Strict):
+    """A loop of feedthrough modules stepped again until its values agree (`World.iterate`)."""
+
+    name: Name | None = None
+    modules: Annotated[list[Name], Field(min_length=1)]
+    """The loop's modules, in the order they step."""
+    tolerance: Annotated[float, Field(gt=0)] = 1e-9
+    max_iterations: Annotated[int, Field(strict=True, ge=1)] = 50
+
+
 class ExpectCfg(_Strict):
     that: str
     at: Duration | None = None
@@ -117,6 +127,8 @@ class ScenarioModel(_Strict):
     select: list[str] | None = None
     modules: list[ModuleCfg] = []
     connect: list[list[Any]] = []
+    iterate: list[IterateCfg] = []
+    """Loops with direct feedthrough whose macro steps are iterated to agreement (strong coupling)."""
     events: list[EventCfg] = []
     expect: list[ExpectCfg] = []
     log: LogCfg = LogCfg()
@@ -353,6 +365,9 @@ class _Builder:
             world.history.budget = cfg.history_budget
         self._add_core(world, cfg)
         self._add_modules(world)
+        self._iterate(world)
+        for items, path in self._module_connects:
+            self._connect(world, items, path)
         self._connect(world, m.connect, ("connect",))
         self._history_memory(world)
         self._select(world)
@@ -428,6 +443,9 @@ class _Builder:
         return good
 
     def _add_modules(self, world: World) -> None:
+        """Add the modules; their own ``connect:`` lists are made after the ``iterate:`` loops are
+        declared (`_iterate`), as a loop must be before the connections that close it."""
+        self._module_connects: list[tuple[list[list[Any]], Path]] = []
         for i, cfg in enumerate(self.sc.model.modules):
             if ("modules", i) in self.sc.invalid:
                 continue
@@ -439,7 +457,7 @@ class _Builder:
             except DynabrainError as exc:
                 self.report(("modules", i), str(exc))
                 continue
-            self._connect(world, cfg.connect, ("modules", i, "connect"))
+            self._module_connects.append((cfg.connect, ("modules", i, "connect")))
 
     def make_module(self, cfg: ModuleCfg, path: Path) -> Module | None:
         """The module ``cfg`` describes (see `make.make_module`), or None with the problem reported. A
@@ -499,6 +517,17 @@ class _Builder:
                 world.connect(conn.src, conn.dst, delay=conn.delay)
             except DynabrainError as exc:
                 self.report((*path, j), str(exc))
+
+    def _iterate(self, world: World) -> None:
+        """Declare the ``iterate:`` loops, before the connections that close them."""
+        for j, loop in enumerate(self.sc.model.iterate):
+            if ("iterate", j) in self.sc.invalid:
+                continue
+            try:
+                world.iterate(loop.modules, name=loop.name, tolerance=loop.tolerance,
+                              max_iterations=loop.max_iterations)
+            except DynabrainError as exc:
+                self.report(("iterate", j), str(exc))
 
     def _select(self, world: World) -> None:
         if self.sc.model.select is None or world.core is None:
