@@ -102,14 +102,13 @@ def test_a_loop_with_no_solution_fails_at_its_tick_and_rolls_back(affine):
 def test_backtick_and_fork_replay_the_iterated_loop(affine):
     world = fmu_loop(affine, (0.5, -0.25), (1.0, 2.0))
     world.tick(4)
-    bus = world._buf.copy()
     other = world.fork()
     world.backtick(2)
     world.tick(2)
     other.tick(1)
     world.tick(1)
     assert np.array_equal(world._buf, other._buf)
-    assert not np.array_equal(bus, other._buf) or world.tick_count == other.tick_count
+    assert world.tick_count == other.tick_count == 5 and world.get("a.steps") == 5
 
 
 class Affine(Module):
