@@ -176,23 +176,35 @@ class Events:
         than 0), in priority order: its clocked inputs set from the bus, ``fmi3ActivateModelPartition``,
         its clocked outputs read. Then the next ticks of the clocks whose interval the FMU gives, the
         output clocks (``fmi3GetClock``: each port says 1 at the tick it ticked) with their clocked
-        outputs, and the other outputs. Whether a partition ran."""
+        outputs, and the other outputs. A countdown a partition gives the interval 0 ticks at once, its
+        partition run after the others (the Reference FMU Clocks does that). Whether a partition ran."""
         s, api = self.s, self.s.api
         self.before_step()
         active = self.due(t_ns) + [vr for vr, at in self.triggered if s.in_values[at] != 0]
         if not active:
             return False
         priority = {c.vr: c.priority for c in s.info.clocks}
-        active.sort(key=lambda vr: (priority.get(vr, 0), vr))
         t = t_ns / 1e9 + s.start_time
-        for vr in active:
-            for g in self.clocked_in.get(vr, ()):
-                s.write_group(g)
-            api.activate(vr, t)
-            for g in self.clocked_out.get(vr, ()):
-                s.read_group(g)
-        if self.schedule is not None:
+        done: set[int] = set()
+        for _ in range(MAX_ITERATIONS):  # a partition may start a countdown of 0: that clock ticks now too
+            active.sort(key=lambda vr: (priority.get(vr, 0), vr))
+            for vr in active:
+                for g in self.clocked_in.get(vr, ()):
+                    s.write_group(g)
+                api.activate(vr, t)
+                for g in self.clocked_out.get(vr, ()):
+                    s.read_group(g)
+            done.update(active)
+            if self.schedule is None:
+                break
             self.schedule.after_event(self, t_ns, active)
+            active = [vr for vr in self.schedule.due(t_ns) if vr not in done]
+            if not active:
+                break
+        else:
+            raise FMUCallError(s.name, "fmi3ActivateModelPartition", None,
+                               f"{s.info.label}: clocks still due at t={t:g} s after {MAX_ITERATIONS} rounds of "
+                               "partitions (countdowns of 0 started again and again)")
         if len(self.out_vrs):
             for (vr, at), on in zip(self.out_clocks, api.get_clocks(self.out_vrs), strict=True):
                 if on:
@@ -254,8 +266,8 @@ class Schedule:
                                    f"{events.s.info.label}: clock {c.name!r} ({c.variability}) was given an interval "
                                    f"at an event between two steps (t={t_ns / 1e9 + events.s.start_time:g} s, an "
                                    "early return): its ticks would fall between two steps")
-            if q == 2:  # fmi3IntervalChanged: counted from this event
-                self.interval_ns[i] = events.whole(float(seconds), c, t_ns)
+            if q == 2:  # fmi3IntervalChanged: counted from this event (a countdown of 0: it ticks now)
+                self.interval_ns[i] = events.whole(float(seconds), c, t_ns, zero=c.variability == "countdown")
                 self.next_ns[i] = t_ns + self.interval_ns[i]
             elif ticked and c.variability == "countdown":
                 self.next_ns[i] = -1  # ran out; the FMU starts another countdown when it will
