@@ -30,6 +30,8 @@ NOT_OVER_THE_BRIDGE = {
     "export_state": "snapshot", "import_state": "restore", "check_state": "restore",
     # name resolution a client does through get and the errors of set
     "settable": "set", "signal_shape": "get", "material_target": "set_material", "ticks_of": "tick",
+    # strong coupling: a loop is declared by the scenario (`iterate:`); the bridge cannot declare one yet
+    "iterate": "the scenario's iterate:", "loops": "status", "loop_report": "status",
 }
 BRIDGE_ONLY = {"acquire", "release", "view", "read", "drop_view", "drop_snapshot", "batch", "motion", "robot_enable",
                "robot_stop", "robot_status"}

@@ -153,6 +153,28 @@ def test_a_python_module_loop_with_a_nonlinear_member():
     assert world.loop_report("loop_a_b").converged
 
 
+def test_a_lockstep_batch_runs_a_looping_world_branch_by_branch():
+    from dynabrain.orchestrator import Batch
+
+    world = World("py", step="1ms")
+    world.add_module(Affine("a", gain=1.0, offset=0.5))
+    world.add_module(Affine("b", gain=-0.5))
+    world.iterate(["a", "b"], tolerance=1e-12)
+    world.connect("a.y", "b.u")
+    world.connect("b.y", "a.u")
+    assert world.loops() == ("loop_a_b",)
+    try:
+        results = {}
+        for backend in ("serial", "lockstep"):
+            with Batch(world, backend=backend) as batch:
+                starts = [world.export_state()] * 2
+                results[backend] = batch.run([3, 5], starts=starts, record=["a.y"])
+        assert results["lockstep"].signals["a.y"].tobytes() == results["serial"].signals["a.y"].tobytes()
+        assert any("iterates a loop" in note for note in results["lockstep"].notes)
+    finally:
+        world.close()
+
+
 def test_loop_declarations_are_checked():
     world = World("py", step="1ms")
     world.add_module(Affine("a"))

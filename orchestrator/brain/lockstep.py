@@ -116,6 +116,12 @@ class LockstepBackend:
                 self.notes.append(f"branch {task.index} runs into a scheduled event: run alone")
                 outcomes[task.index] = run_branch(world, task)
                 continue
+            if world.loops():  # a loop iterated to agreement (kernel/iterate.py) is one schedule entry: not batched
+                self._own(fork)
+                self.notes.append(f"branch {task.index}: its world iterates a loop ({', '.join(world.loops())}): "
+                                  "run alone")
+                outcomes[task.index] = run_branch(world, task)
+                continue
             groups.setdefault(_group_key(start), []).append(_Branch(task, world, start, fork))
         if len(groups) > 1:
             self.notes.append(f"the branches start from {len(groups)} structures or ticks: stepped as "

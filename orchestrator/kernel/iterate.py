@@ -220,10 +220,11 @@ class LoopRunner:
             step(t_ns, dt_ns)
 
     def _tell(self, report: LoopReport) -> None:
-        self.last = report
+        before, self.last = self.last, report
         log.debug("loop %s at t=%d ns: %d iterations, residual %.3g, %s", self.spec.name, report.t_ns,
                   report.iterations, report.residual, "converged" if report.converged else "NOT converged")
-        if self.emit is not None:
+        same = before is not None and (before.iterations, before.converged) == (report.iterations, report.converged)
+        if self.emit is not None and not same:  # an event when the iterations it took change, not every tick
             self.emit("iterate", loop=self.spec.name, iterations=report.iterations, residual=report.residual,
                       converged=report.converged)
 

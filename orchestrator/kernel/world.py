@@ -544,6 +544,10 @@ class World:
                        max_iterations=spec.max_iterations)
             return spec
 
+    def loops(self) -> tuple[str, ...]:
+        """The names of the loops iterated to agreement (`iterate`)."""
+        return tuple(spec.name for spec in self._structure.loops)
+
     def loop_report(self, name: str) -> LoopReport | None:
         """How the last macro step of loop ``name`` went (iterations, residual, converged), or None."""
         for runner in self._structure.runners:
