@@ -55,7 +55,8 @@ class AlgebraicLoopError(WiringError):
     def __init__(self, path: list[str]):
         self.path = path
         super().__init__("algebraic loop: " + " -> ".join(path) + " (mark one connection `delay: true` "
-                         "to break it, or make one module non-feedthrough)")
+                         "to break it, make one module non-feedthrough, or declare the loop's modules "
+                         "`iterate:` to solve it at every step)")
 
 
 class ModuleError(DynabrainError):
