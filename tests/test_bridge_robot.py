@@ -154,13 +154,14 @@ def test_losing_the_brain_the_robot_or_the_world_stops_the_robot():
                     assert watcher.robot_status("arm")["mode"] == "enabled"
                     driver.kill()
                 wait_for(lambda: watcher.robot_status("arm")["mode"] == "safe_stop", what="the safe stop")
-                assert any(e["kind"] == "robot_stop" and "driver" in e["detail"]["reason"] for e in events)
+                wait_for(lambda: any(e["kind"] == "robot_stop" and "driver" in e["detail"]["reason"] for e in events),
+                         what="the robot_stop event naming the driver")
                 # the link's stop, not the robot's own 2 s deadline ("no fresh command ...")
                 assert wait_for(lambda: watcher.robot_status("arm")["reason"]) == "stop command"
                 # 2. the robot goes away: reported, and motion to it refused (the simulation still takes it)
                 emu.kill()
                 wait_for(lambda: not watcher.robot_status("arm")["alive"], what="the robot to be lost")
-                assert any(e["kind"] == "robot_lost" for e in events)
+                wait_for(lambda: any(e["kind"] == "robot_lost" for e in events), what="the robot_lost event")
                 with pytest.raises(WorldRefusedError, match="not connected"):
                     watcher.motion("arm", [0.0, 0.0, 0.0], route="both")
                 assert watcher.motion("arm", [0.0, 0.0, 0.0], route="sim") == {"sim": "applied at the next step"}
