@@ -212,7 +212,7 @@ def breakdown(world: World, ticks: int, repeats: int = 5) -> None:
             spent[_name] += clock() - t0
         module.step = timed
     # the kernel binds each module's step when it builds the schedule: rebuild it with the timers
-    fork._install(build_structure(fork._structure.records, fork._structure.connections), carry_values=True)
+    fork.parts.context.install(build_structure(fork.structure.records, fork.structure.connections), carry_values=True)
     best: tuple[float, dict[str, float]] = (float("inf"), {})
     for _ in range(repeats):
         spent.update(dict.fromkeys(fork.modules, 0.0))
@@ -224,11 +224,11 @@ def breakdown(world: World, ticks: int, repeats: int = 5) -> None:
     total, parts = best
     shown = ", ".join(f"{name} {t / ticks * 1e6:.1f}" for name, t in parts.items())
     print(f"     per tick (us): {shown}; kernel + history {(total - sum(parts.values())) / ticks * 1e6:.1f}")
-    groups = [", ".join(m.name for m in f.members) for f in world._structure.compiled._fused.values()]
+    groups = [", ".join(m.name for m in f.members) for f in world.structure.compiled._fused.values()]
     if groups:
         print(f"     (timed one by one; the world steps {'; '.join(groups)} as one call: `Module.fuse`)")
-    record, get_state, bus_bytes = fork._record, fork.core.get_state, fork._mv.tobytes
-    probes = fork._structure.output_check.probes(fork._buf, fork._mv)
+    record, get_state, bus_bytes = fork.parts.context.record, fork.core.get_state, fork.parts.context.mv.tobytes
+    probes = fork.structure.output_check.probes(fork.parts.context.buf, fork.parts.context.mv)
     t0 = fork.tick_count
 
     def entries() -> None:

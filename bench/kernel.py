@@ -68,7 +68,7 @@ def overhead_parts(world: World, ticks: int) -> list:
     """Loops that time the parts of a tick alone, on ``world`` (a fork: they leave it in no state to
     tick on): the bound generated tick (the module's step and the finite check), the history entry,
     and the empty loop they run in."""
-    run, record, t0 = world._run_tick, world._record, world.tick_count
+    run, record, t0 = world.parts.context.run_tick, world.parts.context.record, world.tick_count
 
     def tick_alone() -> None:
         for k in range(t0, t0 + ticks):
@@ -129,10 +129,10 @@ def history_costs(ticks: int = 200) -> None:
     every, none = physics_world(box_scene(), keyframe_every=1), physics_world(box_scene(), keyframe_every=1)
     for w in (every, none):
         w.tick(world.history.depth + 5)  # history full, its saver made
-    none._record = lambda _tick: None
+    none.parts.context.record = lambda _tick: None
     t_every, t_none = (t / ticks for t in best_of_each([lambda: every.tick(ticks), lambda: none.tick(ticks)], 9))
     t_snap = max(t_every - t_none, 0.0)
-    t_made = best_of(lambda: [world._capture() for _ in range(ticks)], 9) / ticks
+    t_made = best_of(lambda: [world.parts.timeline.capture() for _ in range(ticks)], 9) / ticks
     every.close()
     none.close()
     world.tick(5)

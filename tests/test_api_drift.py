@@ -32,6 +32,9 @@ NOT_OVER_THE_BRIDGE = {
     "settable": "set", "signal_shape": "get", "material_target": "set_material", "ticks_of": "tick",
     # strong coupling: a loop is declared by the scenario (`iterate:`); the bridge cannot declare one yet
     "iterate": "the scenario's iterate:", "loops": "status", "loop_report": "status",
+    # the kernel's read-only views for tools in this process (arrays, structures, callables)
+    "bus": "get", "structure": "status", "compiled": "in-process", "observers": "subscribe_events",
+    "parts": "in-process", "error": "the failed call's error", "module_factory": "in-process", "rebuild": "in-process",
 }
 BRIDGE_ONLY = {"acquire", "release", "view", "read", "drop_view", "drop_snapshot", "batch", "motion", "robot_enable",
                "robot_stop", "robot_status"}

@@ -64,7 +64,7 @@ def record(world: World, ticks: int, frames: list) -> None:
     for _ in range(ticks):
         world.tick()
         top = world.history.top if world.history.every == 1 else world.snapshot()  # keyframes: a capture now
-        assert np.array_equal(top.bus.view(np.int64), world._buf.view(np.int64))  # (the bus may hold NaN)
+        assert np.array_equal(top.bus.view(np.int64), world.bus.view(np.int64))  # (the bus may hold NaN)
         frames.append((top.tick, top.bus.view(np.int64).copy(), pickle.dumps((top.states, top.params))))
 
 
@@ -82,7 +82,7 @@ def chain(compiled: bool) -> tuple[World, list]:
         w.connect(f"fan_b.y{i}", f"3fan.u{(3 * i) % Fan.N}", delay=True)
     for i in range(5):
         w.connect(f"3fan.y{i}", f"fan-a.u{2 * i}")
-    s = w._structure
+    s = w.structure
     assert s.delayed_gather and any(e.gather for e in s.dispatch) and any(e.copies for e in s.dispatch)
     assert w.schedule_order() == ["noise", "int", "gain-1", "3fan", "fan-a", "fan_b"]
     frames: list = []
@@ -114,9 +114,9 @@ def same(a: list, b: list) -> None:
 def test_a_chain_steps_to_the_same_bits_both_ways():
     w1, generated = chain(compiled=True)
     w2, plain = chain(compiled=False)
-    assert w1._compiled and not w2._compiled
+    assert w1.compiled and not w2.compiled
     same(generated, plain)
-    assert np.array_equal(w1._buf.view(np.int64), w2._buf.view(np.int64))
+    assert np.array_equal(w1.bus.view(np.int64), w2.bus.view(np.int64))
     for w in (w1, w2):
         w.close()
 
@@ -126,7 +126,7 @@ def test_the_humanoid_steps_to_the_same_bits_both_ways(monkeypatch):
     for flag in ("1", "0"):  # load_world makes its World without compiled=: the environment decides
         monkeypatch.setenv("DYNABRAIN_COMPILED", flag)
         world = load_world(HUMANOID)
-        assert world._compiled is (flag == "1")
+        assert world.compiled is (flag == "1")
         frames: list = []
         record(world, 150, frames)
         world.backtick(40)
@@ -153,7 +153,7 @@ def test_a_traceback_shows_the_generated_line_and_the_source_goes_with_the_world
     w = World(step="1ms", compiled=True)
     w.add_module(Counter("c"))
     w.add_module(Boom("servo-1"))
-    tick = w._structure.compiled
+    tick = w.structure.compiled
     filename = tick.filename
     assert filename.startswith("<dynabrain tick ") and linecache.getlines(filename)
     with pytest.raises(ModuleError) as err:
@@ -177,7 +177,7 @@ def test_locals_are_named_after_the_modules():
     w.add_module(Gain("a_b", n=2), connect=[("a-b.y", "a_b.u")])  # delayed: the integrator has state
     w.add_module(Gain("1x", n=2), connect=[("a_b.y", "1x.u")])  # direct
     w.add_module(Gain("x", n=2), connect=[("1x.y", "x.u")])
-    source = w._structure.compiled.source
+    source = w.structure.compiled.source
     for name in ("step_a_b=", "step_a_b_2=", "step_1x=", "step_x=", "delayed_dst=", "delayed_src=",
                  "_1x_in_dst=", "_1x_in_src=", "x_in_dst=", "x_in_src="):
         assert name in source, (name, source)
@@ -192,7 +192,7 @@ def test_the_state_savers_source_is_registered():
     w.add_module(Counter("c"))
     w.add_module(Latchless("held"))
     w.tick()
-    name = w._save_states.__code__.co_filename
+    name = w.parts.context.save_states.__code__.co_filename
     assert name.startswith("<dynabrain state saver ") and "def save(" in "".join(linecache.getlines(name))
     w.close()
 
@@ -213,12 +213,12 @@ class Latchless(Module):
 def test_the_environment_switch_and_fork(monkeypatch):
     monkeypatch.setenv("DYNABRAIN_COMPILED", "0")
     plain = World()
-    assert not plain._compiled and not plain.fork()._compiled
-    assert World(compiled=True)._compiled  # the keyword wins over the environment
+    assert not plain.compiled and not plain.fork().compiled
+    assert World(compiled=True).compiled  # the keyword wins over the environment
     monkeypatch.setenv("DYNABRAIN_COMPILED", "off")
-    assert not World()._compiled
+    assert not World().compiled
     monkeypatch.delenv("DYNABRAIN_COMPILED")
-    assert World()._compiled and not World(compiled=False).fork()._compiled
+    assert World().compiled and not World(compiled=False).fork().compiled
     monkeypatch.setenv("DYNABRAIN_COMPILED", "sometimes")
     with pytest.raises(DynabrainError, match="DYNABRAIN_COMPILED='sometimes'"):
         World()

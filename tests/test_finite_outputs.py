@@ -106,10 +106,10 @@ def test_spans_merge_across_finite_inputs_and_stop_at_what_may_be_nan():
         w.add_module(Divide("b"), connect=[("a.y", "b.u")])
         w.add_module(Unset("src"))
         w.add_module(Divide("c", n=2), connect=[("src.echo", "c.u")])
-        slots = w._structure.layout.slots
+        slots = w.structure.layout.slots
         # b's inputs lie between a's outputs and its own, and hold finite values: one span; src's input
         # starts NaN, its outputs are not checked, and c reads them: c's outputs make a span of their own
-        assert w._structure.output_check.spans == ((slots["a.y"].start, slots["b.count"].start + 1),
+        assert w.structure.output_check.spans == ((slots["a.y"].start, slots["b.count"].start + 1),
                                                    (slots["c.y"].start, slots["c.count"].start + 1))
 
 

@@ -198,7 +198,7 @@ def test_error_status_rolls_the_world_back_and_it_goes_on(faulty, version):
         assert w.tick_count == 10 and w.error is e
         w.set("f.u", 0.5)  # the FMU was restored out of its error state with the tick's saved state
         w.tick()
-        assert w.get("f.y") == pytest.approx(before[w._structure.layout.slots["f.y"].start] + 0.0005)
+        assert w.get("f.y") == pytest.approx(before[w.structure.layout.slots["f.y"].start] + 0.0005)
 
 
 @pytest.mark.parametrize("version", [2, 3])

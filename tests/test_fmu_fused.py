@@ -57,13 +57,13 @@ def chain(fmus: list[tuple[str, Path]], *, compiled: bool, **params) -> World:
 
 
 def bus(world: World) -> bytes:
-    return world._buf.tobytes()
+    return world.bus.tobytes()
 
 
 def test_a_chain_steps_as_one_and_matches_the_separate_steps(filt):
     names = [(f"f{i}", filt) for i in range(4)]
     fused, plain = (chain(names, compiled=c, sigma=0.01) for c in (True, False))
-    assert "fused_f0_f3(t_ns" in fused._structure.compiled.source  # one call steps the four
+    assert "fused_f0_f3(t_ns" in fused.structure.compiled.source  # one call steps the four
     for w in (fused, plain):
         w.set("f0.u", [1.0, 2.0, 3.0])
         w.tick(40)

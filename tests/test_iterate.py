@@ -77,7 +77,7 @@ def test_a_loop_with_no_solution_fails_at_its_tick_and_rolls_back(affine):
     world = fmu_loop(affine, (1.0, 1.0), (1.0, 0.0), max_iterations=8)
     world.set("a.offset", 0.0)  # first a loop that agrees (y = 0)
     world.tick(3)
-    before = world._buf.copy()
+    before = world.bus.copy()
     world.set("a.offset", 1.0)
     events = []
     world.observe(type("Events", (), {"on_event": lambda self, view, e: events.append(e),
@@ -90,7 +90,7 @@ def test_a_loop_with_no_solution_fails_at_its_tick_and_rolls_back(affine):
     assert caught.value.tick == 3 and caught.value.module == "ab"
     assert "8 iterations" in str(caught.value) and "a.u" in str(caught.value)
     assert world.tick_count == 3 and world.get("a.steps") == 3 and world.get("b.steps") == 3
-    assert np.array_equal(world._buf, before)
+    assert np.array_equal(world.bus, before)
     report = world.loop_report("ab")
     assert not report.converged and report.iterations == 8
     assert any(e.kind == "iterate" and not e.detail["converged"] for e in events)
@@ -107,7 +107,7 @@ def test_backtick_and_fork_replay_the_iterated_loop(affine):
     world.tick(2)
     other.tick(1)
     world.tick(1)
-    assert np.array_equal(world._buf, other._buf)
+    assert np.array_equal(world.bus, other.bus)
     assert world.tick_count == other.tick_count == 5 and world.get("a.steps") == 5
 
 

@@ -167,12 +167,12 @@ def test_backtick_then_tick_is_bit_identical():
     frames = []
     for _ in range(20):
         w.tick()
-        frames.append(w._buf.copy())
+        frames.append(w.bus.copy())
     w.backtick(20)
     assert w.tick_count == 10
     for frame in frames:
         w.tick()
-        assert np.array_equal(w._buf, frame)
+        assert np.array_equal(w.bus, frame)
 
 
 def test_backtick_restores_structure_and_params():
@@ -209,11 +209,11 @@ def test_exception_in_step_rolls_back_and_names_module():
     w.add_module(Counter("c"))
     w.add_module(Boom("bomb", at_tick=5))
     w.tick(5)
-    before = w._buf.copy()
+    before = w.bus.copy()
     with pytest.raises(ModuleError) as err:
         w.tick()
     assert err.value.module == "bomb" and err.value.tick == 5 and "boom" in str(err.value)
-    assert w.tick_count == 5 and np.array_equal(w._buf, before)
+    assert w.tick_count == 5 and np.array_equal(w.bus, before)
     w.remove_module("bomb")  # the world stays usable
     w.tick(3)
     assert w.get("c.count") == 8.0
@@ -279,7 +279,7 @@ def test_a_module_whose_steps_leave_its_state_alone_is_saved_once_and_rolls_back
         asked = latch.asked
         for _ in range(ticks):
             w.tick()
-            frames.append((w._buf.copy(), latch._count))
+            frames.append((w.bus.copy(), latch._count))
         assert latch.asked - asked >= ticks if not hold else latch.asked - asked <= 2
     assert latch._count == 15
     w.backtick(25)  # back across both switches
@@ -289,7 +289,7 @@ def test_a_module_whose_steps_leave_its_state_alone_is_saved_once_and_rolls_back
         w.set("l.hold", hold)
         for _ in range(ticks):
             w.tick()
-            replay.append((w._buf.copy(), latch._count))
+            replay.append((w.bus.copy(), latch._count))
     assert all(np.array_equal(a, b) and n == m for (a, n), (b, m) in zip(frames, replay, strict=True))
     w.backtick(7)  # into the held stretch: the state kept for it comes back
     assert latch._count == 10 and w.get("l.y") == 10.0
@@ -303,18 +303,18 @@ def test_snapshot_restore_and_fork_independence():
     snap = w.snapshot()
     fork = w.fork()
     w.tick(10)
-    after = w._buf.copy()
+    after = w.bus.copy()
     fork.set("g.k", -1.0)  # the fork is independent
     fork.tick(10)
-    assert not np.array_equal(fork._buf, after)
+    assert not np.array_equal(fork.bus, after)
     w.restore(snap)
     assert w.tick_count == 10
     w.tick(10)
-    assert np.array_equal(w._buf, after)
+    assert np.array_equal(w.bus, after)
     twin = w.fork()
     twin.tick(5)
     w.tick(5)
-    assert np.array_equal(twin._buf, w._buf)  # same seed state, same inputs, same result
+    assert np.array_equal(twin.bus, w.bus)  # same seed state, same inputs, same result
     for world in (w, fork, twin):
         world.close()
 
@@ -537,4 +537,4 @@ def test_worlds_step_the_way_the_module_run_asks(tick_runner):
     w = World(step="1ms")
     w.add_module(Counter("c"))
     w.tick(2)
-    assert w._compiled is tick_runner and w.fork()._compiled is tick_runner
+    assert w.compiled is tick_runner and w.fork().compiled is tick_runner

@@ -257,7 +257,7 @@ def test_history_holds_the_bus_as_bytes_and_gives_states_back():
     entry = w.history._ring[-1]
     assert type(entry[3]) is bytes  # the hot path's copy
     top = w.history.top
-    assert np.array_equal(top.bus.view(np.int64), w._buf.view(np.int64)) and not top.bus.flags.writeable
+    assert np.array_equal(top.bus.view(np.int64), w.bus.view(np.int64)) and not top.bus.flags.writeable
     assert top.tick == 12 and top.states == tuple(entry[6:])
     before = fingerprint(w)
     w.tick(5)
@@ -285,8 +285,8 @@ class Scalar(Module):
 def test_a_short_span_is_checked_in_the_generated_tick():
     w = World(step="1ms")
     w.add_module(Scalar("s"))
-    if w._compiled:
-        source = w._structure.compiled.source
+    if w.compiled:
+        source = w.structure.compiled.source
         assert "mv[" in source and "search_outputs(buf, n)" in source and "add_span" not in source
     w.tick(3)
     w.set("s.u", 0.0)

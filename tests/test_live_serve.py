@@ -85,7 +85,7 @@ def test_a_port_in_use_is_refused_naming_it_and_the_world_is_untouched():
             with pytest.raises(DynabrainError, match=f"127.0.0.1:{port} \\(--live-port {port}\\).*in use"):
                 server.open()
             assert server.session is None and server.live is None  # nothing served over Zenoh either
-            assert world.tick_count == 0 and not any(isinstance(o, LiveView) for o in world._observers)
+            assert world.tick_count == 0 and not any(isinstance(o, LiveView) for o in world.observers)
             world.tick(3)
         finally:
             server.close()

@@ -258,7 +258,7 @@ def test_sensors_side_by_side_step_as_one_with_the_same_bits():
         return world
 
     fused, plain = build(True), build(False)
-    assert "fused_l_ft_gyro(t_ns" in fused._structure.compiled.source
+    assert "fused_l_ft_gyro(t_ns" in fused.structure.compiled.source
 
     def both(action) -> None:
         for w in (fused, plain):

@@ -199,7 +199,7 @@ def check(scenario: Path = typer.Argument(..., help="scenario YAML file"),
         console.print(f"step {format_duration(world.dt_ns)}, duration {format_duration(sc.duration_ns)}, "
                       f"core {world.core.ENGINE if world.core else 'none'}")
         table = Table("module", "class", "period", "inputs", "outputs", header_style="bold")
-        for step in world._structure.plan:
+        for step in world.structure.plan:
             rec = step.record
             table.add_row(rec.name, type(rec.module).__name__, format_duration(rec.period_ns),
                           str(len(rec.inputs)), str(len(rec.outputs)))

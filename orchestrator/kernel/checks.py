@@ -76,9 +76,9 @@ def check_module(module: Module, *, core: PhysicsCore | None = None, step: str |
             return report
         _check_order(report)
         inputs = [n for n in world.signals if n.startswith(module.name + ".") and
-                  world._structure.layout.slots[n].direction == "in" and
-                  world._structure.layout.slots[n].port.view_of is None]
-        plan = [{n: drive(rng, world._structure.layout.slots[n].shape) for n in inputs} for _ in range(2 * ticks + 5)]
+                  world.structure.layout.slots[n].direction == "in" and
+                  world.structure.layout.slots[n].port.view_of is None]
+        plan = [{n: drive(rng, world.structure.layout.slots[n].shape) for n in inputs} for _ in range(2 * ticks + 5)]
         _run(world, plan[:ticks], report)
         _check_roundtrip(module, report)
         if module.CAPABILITIES.can_rollback:
@@ -148,7 +148,7 @@ def _run(world: World, plan: list[dict[str, np.ndarray]], report: CheckReport) -
         except Exception as exc:
             report.problems.append(f"tick {world.tick_count} failed: {exc}")
             break
-        frames.append(world._buf.copy())
+        frames.append(world.bus.copy())
     return frames
 
 

@@ -17,7 +17,7 @@ import re
 from collections import deque
 from collections.abc import Callable, Iterable
 from itertools import islice
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -112,6 +112,17 @@ def _size(value: Any) -> int:
     if isinstance(value, (bytes, bytearray)):
         return len(value)
     return 32
+
+
+class RestorePoint(NamedTuple):
+    """Where a rollback to a tick starts (`History.restore_point`)."""
+
+    state: WorldState
+    """The newest keyframe at or before that tick."""
+    ahead: int
+    """How many ticks after the keyframe that tick is (stepped again from it)."""
+    inputs: list[list[tuple[int, bytes]] | None]
+    """For each of those ticks, the inputs written at it (``(bus offset, bytes)``), or None."""
 
 
 class History:
@@ -241,7 +252,7 @@ class History:
                                 "its keyframe and the ticks to step from it are restore_point's")
         return WorldState.from_entry(entry)
 
-    def restore_point(self, n: int) -> tuple[WorldState, int, list[list[tuple[int, bytes]] | None]]:
+    def restore_point(self, n: int) -> RestorePoint:
         """(the newest keyframe at or before ``n`` ticks back, how many ticks after it that tick is, and for
         each of those ticks the inputs written at it: `Written` spans, or None): the state itself, 0 and
         no inputs where that tick holds one (always, with a state every tick)."""
@@ -251,7 +262,7 @@ class History:
             entry = ring[at - ahead]
             if type(entry) is tuple:
                 inputs = [e.spans if type(e) is Written else None for e in islice(ring, at - ahead + 1, at + 1)]
-                return WorldState.from_entry(entry), ahead, inputs
+                return RestorePoint(WorldState.from_entry(entry), ahead, inputs)
         raise RollbackError(f"backtick({n}): no keyframe kept before it")  # `available` keeps one
 
     def _check_back(self, n: int) -> None:

@@ -86,11 +86,11 @@ class WorldView:
     def bus(self) -> np.ndarray:
         """The whole bus as a read-only array (layout from `signal_slots`); the same array object
         until the world's structure changes."""
-        return self._world._ro
+        return self._world.bus
 
     def signal_slots(self) -> dict[str, tuple[int, tuple[int, ...], str]]:
         """signal -> (offset in `bus`, shape, unit)."""
-        return {n: (s.start, s.shape, s.port.unit) for n, s in self._world._structure.layout.slots.items()}
+        return {n: (s.start, s.shape, s.port.unit) for n, s in self._world.structure.layout.slots.items()}
 
     @property
     def core(self):

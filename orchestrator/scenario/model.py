@@ -11,7 +11,7 @@ import copy
 import functools
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Annotated, Any
 
@@ -162,15 +162,15 @@ class Scenario:
         """A World ready at t=0, or a `ScenarioError` listing every problem."""
         self.expectations = []
         builder = _Builder(self)
-        world = builder.build(overrides)
+        factory = functools.partial(make_module, base_dir=self.dir, allow_python=self.allow_python,
+                                    local_modules=self.local_modules)
+        rebuild = functools.partial(load_world, os.path.abspath(self.path), allow_python=self.allow_python,
+                                    **overrides)
+        world = builder.build(overrides, factory, rebuild)
         problems = _in_order([*self.problems, *builder.problems])
         if problems:
             world.close()
             raise ScenarioError(problems)
-        world.module_factory = functools.partial(make_module, base_dir=self.dir, allow_python=self.allow_python,
-                                                 local_modules=self.local_modules)
-        world.rebuild = functools.partial(load_world, os.path.abspath(self.path), allow_python=self.allow_python,
-                                          **overrides)
         return world
 
     def check(self) -> list[Problem]:
@@ -353,14 +353,16 @@ class _Builder:
             self.problems.append(_pydantic_problem(_Shifted(self.src, path), data, loc, errors,
                                                    model if len(loc) == 1 else None))
 
-    def build(self, overrides: dict[str, Any]) -> World:
+    def build(self, overrides: dict[str, Any], module_factory: Callable[[dict[str, Any]], Any] | None = None,
+              rebuild: Callable[[], World] | None = None) -> World:
         m = self.sc.model
         cfg = self._world_cfg(overrides)
         step = parse_duration_ns(cfg.step)
         if self.sc.duration_ns % step:
             self.report(("world", "duration"), f"the duration ({format_duration(self.sc.duration_ns)}) is not a "
                                                f"whole number of {cfg.step} steps")
-        world = World(m.name, step=step, seed=cfg.seed, history=cfg.history, keyframe_every=cfg.keyframe_every)
+        world = World(m.name, step=step, seed=cfg.seed, history=cfg.history, keyframe_every=cfg.keyframe_every,
+                      module_factory=module_factory, rebuild=rebuild)
         if cfg.history_budget is not None:
             world.history.budget = cfg.history_budget
         self._add_core(world, cfg)
