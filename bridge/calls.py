@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from dynabrain.orchestrator.kernel.bodies import BodySpecError
 from dynabrain.orchestrator.kernel.core import BodySpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.observers import WorldView
+from dynabrain.orchestrator.kernel.specs import BodySpecError
 from dynabrain.orchestrator.kernel.suggest import did_you_mean
 from dynabrain.orchestrator.kernel.units import parse_duration_ns
 from dynabrain.orchestrator.kernel.world import World, as_connection

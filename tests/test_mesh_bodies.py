@@ -16,10 +16,10 @@ from dynabrain.modules.exudyn import geometry as geo
 from dynabrain.modules.exudyn.core import ExudynCore
 from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.orchestrator import load_world
-from dynabrain.orchestrator.kernel.bodies import BodySpecError
 from dynabrain.orchestrator.kernel.core import BodySpec, JointSpec, SceneSpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError, ScenarioError
 from dynabrain.orchestrator.kernel.meshes import Mesh, convex_hull, mass_properties, read_mesh
+from dynabrain.orchestrator.kernel.specs import BodySpecError
 from dynabrain.orchestrator.kernel.world import World
 
 CORES = {"mujoco": MujocoCore, "exudyn": ExudynCore}

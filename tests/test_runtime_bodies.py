@@ -17,9 +17,9 @@ import pytest
 from dynabrain.modules.exudyn.core import ExudynCore
 from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.orchestrator import load_world
-from dynabrain.orchestrator.kernel.bodies import BodySpecError
 from dynabrain.orchestrator.kernel.core import COLORS, BodySpec, SceneSpec
 from dynabrain.orchestrator.kernel.errors import DynabrainError, ScenarioError
+from dynabrain.orchestrator.kernel.specs import BodySpecError
 from dynabrain.orchestrator.kernel.world import World
 from dynabrain.orchestrator.scenario.model import load_scenario
 from dynabrain.orchestrator.scenario.runner import run_scenario

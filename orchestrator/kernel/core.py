@@ -54,37 +54,20 @@ from __future__ import annotations
 
 from abc import abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
+from . import specs
+from .bodies import joint_frames, joint_kind
 from .errors import DynabrainError
 from .module import Capabilities, Module, Port
-from .portable import state_type
+from .specs import KEEP, MAKE_OTHERS, BodyInfo, BodySpec, Edits, Material, SceneSpec, Weld, quantities
 from .suggest import did_you_mean
 
-SHAPES = ("plane", "box", "sphere", "capsule", "cylinder", "mesh")
-FLEX_SHAPES = ("cable",)
-"""Shapes of flexible bodies (not every core has them; see `CableSpec`)."""
-JOINT_KINDS = ("free", "hinge", "slide", "fixed")
-
-COLORS: dict[str, tuple[float, float, float, float]] = {
-    "red": (0.85, 0.15, 0.15, 1.0),
-    "green": (0.2, 0.7, 0.25, 1.0),
-    "blue": (0.15, 0.3, 0.85, 1.0),
-    "yellow": (0.95, 0.85, 0.1, 1.0),
-    "orange": (0.95, 0.55, 0.1, 1.0),
-    "purple": (0.55, 0.25, 0.75, 1.0),
-    "cyan": (0.1, 0.75, 0.85, 1.0),
-    "magenta": (0.85, 0.2, 0.7, 1.0),
-    "white": (0.95, 0.95, 0.95, 1.0),
-    "grey": (0.5, 0.5, 0.5, 1.0),
-    "gray": (0.5, 0.5, 0.5, 1.0),
-    "black": (0.08, 0.08, 0.08, 1.0),
-    "brown": (0.5, 0.3, 0.15, 1.0),
-}
-
+# the scene specs' home is `specs`; cores, scenarios and tests name these here too
+COLORS, SHAPES, FLEX_SHAPES, JOINT_KINDS = specs.COLORS, specs.SHAPES, specs.FLEX_SHAPES, specs.JOINT_KINDS
+CableSpec, JointSpec, NO_EDITS, scene_bodies = specs.CableSpec, specs.JointSpec, specs.NO_EDITS, specs.scene_bodies
 
 WRENCH_UNIT = "N, N*m"
 """Unit of a body's wrench input: three forces, then three torques."""
@@ -122,203 +105,6 @@ def requested_velocity(request: np.ndarray, lin: np.ndarray, ang: np.ndarray
     return out[0], out[1]
 
 
-@dataclass(frozen=True)
-class JointSpec:
-    """How a body is attached to its parent (the world when it has none).
-
-    ``axis`` is in the body frame; ``anchor`` is the joint's position in the body frame.
-    ``range`` limits a hinge (rad) or slide (m).
-    """
-
-    kind: str = "free"
-    name: str | None = None
-    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    anchor: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    range: tuple[float, float] | None = None
-    damping: float = 0.0
-
-
-@dataclass(frozen=True)
-class CableSpec:
-    """What a ``cable`` body has beyond a `BodySpec`: a rope, straight at t=0 from the body's ``pos``
-    (world frame) to ``end``, of ``segments`` beam elements.
-
-    ``axial_stiffness`` is EA (N: the force that would double its length), ``bending_stiffness`` EI
-    (N*m^2), ``damping`` a time constant (s): the axial and bending damping are ``damping`` times the
-    stiffnesses. ``attach`` says what holds each end (start, end): None for a free end, ``"world"``
-    to pin it where it is, or a body's name to pin it to that body at the point where it is at t=0.
-    The body's ``size`` is ``(radius,)`` and its ``mass`` the whole cable's.
-    """
-
-    end: tuple[float, float, float]
-    segments: int = 8
-    axial_stiffness: float = 1.0e4
-    bending_stiffness: float = 1.0e-3
-    damping: float = 0.0
-    attach: tuple[str | None, str | None] = (None, None)
-
-
-@dataclass(frozen=True)
-class BodySpec:
-    """One primitive body of a scene.
-
-    ``size`` by shape: box: full edge lengths (x, y, z); sphere: (radius,); capsule and cylinder:
-    (radius, length along the body z axis); plane: (half-x, half-y) or () for infinite; cable:
-    (radius,), with the rest in ``cable``; mesh: () (its ``mesh`` and ``scale`` say).
-    A ``mesh`` body's ``mesh`` is a file (``.obj``, ``.stl``; read when the spec is made), ``{vertices,
-    faces}`` or a list of vertices, in the body frame, times ``scale`` (a number or three); it becomes a
-    `kernel.meshes.Mesh`. Both cores simulate it as its convex hull (contacts, mass and inertia; MuJoCo
-    collides a mesh as its hull); its body frame is the mesh's own (not its centre of mass).
-    ``pos`` is in the parent's frame (the world's when ``parent`` is None); ``quat`` is w-x-y-z.
-    A plane is always static; a top-level body without ``joint`` is free.
-
-    Values may be written as a scenario writes them: lengths and masses with units (``"100mm"``,
-    ``"50g"``), a colour by name (``"blue"``) or RGB(A), a joint by kind (``"hinge"``); they become SI
-    numbers when the spec is made, and a value no core can take raises `BodySpecError` naming the body
-    and the field (`kernel.bodies.normalise`). ``friction`` and ``restitution`` are the body's own
-    coefficients (None: the core's); `PhysicsCore.set_material` changes them at run time.
-    """
-
-    name: str
-    shape: str
-    size: tuple[float, ...] = ()
-    pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
-    mass: float | None = None
-    color: tuple[float, float, float, float] = COLORS["grey"]
-    joint: JointSpec | None = None
-    parent: str | None = None
-    friction: float | None = None
-    line: int | None = None
-    """Line in the scenario file where the body is written (for errors)."""
-    cable: CableSpec | None = None
-    """The rope of a ``cable`` body (shape in `FLEX_SHAPES`); None for rigid shapes."""
-    restitution: float | None = None
-    """The body's own coefficient of restitution (0..1); None: the core's ``restitution``."""
-    mesh: Any = None
-    """The triangle mesh of a ``mesh`` body (a `kernel.meshes.Mesh` once made); None for other shapes."""
-    scale: tuple[float, float, float] | None = None
-    """The scale of a ``mesh`` body's vertices per axis ((1, 1, 1) once made); None for other shapes."""
-
-    def __post_init__(self) -> None:
-        from .bodies import normalise  # (bodies.py uses these classes)
-
-        for key, value in normalise(self).items():  # units and colour names as a scenario writes them
-            object.__setattr__(self, key, value)
-
-
-@dataclass(frozen=True)
-class SceneSpec:
-    """A scene: primitives, or an engine model file (``model``), plus options."""
-
-    bodies: tuple[BodySpec, ...] = ()
-    model: str | None = None
-    """Path of an engine model file (MJCF for MuJoCo), resolved against the scenario's folder."""
-    options: dict = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class BodyInfo:
-    """What a core tells about one body (for viewers, logs and expectation expressions)."""
-
-    name: str
-    free: bool
-    parent: str | None
-    geoms: tuple[dict, ...] = ()
-
-
-@state_type
-class Weld(NamedTuple):
-    """A joint made at run time (`PhysicsCore.make_joint`) between bodies ``a`` and ``b`` as they stood
-    when it was made: a weld holds them rigidly, a hinge, slider or ball lets them turn or slide."""
-
-    name: str
-    """The joint's name (unique among the scene's joints and the other welds)."""
-    a: str
-    b: str
-    data: tuple
-    """What the engine needs to make the joint again: for a weld the relative pose, in the engine's
-    terms; for the other kinds the joint's frame in each body (`kernel.bodies.JointFrames`)."""
-    kind: str = "weld"
-    """weld, hinge, slider or ball (`kernel.bodies.MADE_JOINT_KINDS`)."""
-
-
-@state_type
-class Material(NamedTuple):
-    """A body's own contact coefficients and mass, set at run time (`PhysicsCore.set_material`); None:
-    the core's parameter (for the mass: the model's own)."""
-
-    body: str
-    friction: float | None
-    restitution: float | None
-    mass: float | None = None
-    """kg; the body's inertia scales with it (the same shape, denser or lighter)."""
-
-
-@state_type
-class Edits(NamedTuple):
-    """The structural edits of an `EditedCore`, as one immutable, hashable value (part of its state:
-    history keeps it, a restore compares it, a core caches what it compiled for it)."""
-
-    frozen: tuple = ()
-    """One engine-made entry per frozen object, a NamedTuple whose first field, ``object``, is the
-    object's name (the rest: where its bodies and joints stood when it froze)."""
-    welds: tuple[Weld, ...] = ()
-    """The joints made at run time, in the order they were made."""
-    groups: tuple[tuple[str, ...], ...] = ()
-    """The objects of each `no_collision`, sorted, in the order the calls came."""
-    added: tuple[BodySpec, ...] = ()
-    """Bodies added at run time (`PhysicsCore.add_body`), in the order they came, each as it was
-    added (its ``pos`` and ``quat`` where it appeared)."""
-    removed: tuple[str, ...] = ()
-    """Objects of the scene as written that `PhysicsCore.remove_body` took out (a body added at run
-    time and removed again simply leaves ``added``)."""
-    materials: tuple[Material, ...] = ()
-    """The bodies whose friction or restitution was set at run time (`PhysicsCore.set_material`),
-    sorted by body: their own coefficients from then on."""
-    absent: tuple[str, ...] = ()
-    """The frozen objects that are out of the simulation (`PhysicsCore.make` with ``others="absent"``), in
-    object order: no geometry, no contacts, nothing computed; their entries in ``frozen`` say where they
-    stood when they left (their outputs hold there, and they come back there, at rest)."""
-
-    def scene_key(self) -> tuple:
-        """What decides the core's ports: the bodies added and removed."""
-        return (self.added, self.removed)
-
-    def structural(self) -> Edits:
-        """These edits without the materials (which an engine applies without rebuilding)."""
-        return self._replace(materials=()) if self.materials else self
-
-
-def scene_bodies(scene: SceneSpec, scene_key: tuple) -> tuple[BodySpec, ...]:
-    """The primitives of ``scene`` once the bodies of ``scene_key`` (`Edits.scene_key`: added, removed)
-    were added and removed: the scene's, less the removed objects and what hangs on them, then the
-    added ones."""
-    added, removed = scene_key
-    kept = scene.bodies
-    if removed:
-        parent = {b.name: b.parent for b in kept}
-
-        def gone(name: str | None) -> bool:
-            while name is not None:
-                if name in removed:
-                    return True
-                name = parent.get(name)
-            return False
-
-        kept = tuple(b for b in kept if not gone(b.name))
-    return (*kept, *added)
-
-
-KEEP: Any = type("Keep", (), {"__repr__": lambda self: "KEEP"})()
-"""What `PhysicsCore.set_material` takes for a coefficient it should leave as it is."""
-
-MAKE_OTHERS = ("frozen", "absent")
-"""What `PhysicsCore.make` does with the objects it does not select: ``frozen`` (the default) keeps each where
-it stands as a static obstacle (drawn, collided with); ``absent`` takes them out of the simulation."""
-
-NO_EDITS = Edits()
-"""The structure of a scene as it was written: nothing frozen, no weld, no collision filter."""
 
 
 class PhysicsCore(Module):
@@ -621,8 +407,6 @@ class EditedCore(PhysicsCore):
 
     def make_joint(self, a: str, b: str, name: str | None = None, *, kind: str = "weld",
                    axis: Sequence[float] | None = None, anchor: Sequence[float] | None = None) -> str:
-        from .bodies import joint_frames, joint_kind, quantities
-
         self._row(a)
         self._row(b)
         for body in (a, b) if self._edits.absent else ():

@@ -22,7 +22,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .errors import DynabrainError, RollbackError
-from .structure import SAVE_STATE, UNRESTORABLE, Structure, _save_kind
+from .portable import UNRESTORABLE
+from .structure import SAVE_STATE, Structure, save_kind
 
 BUDGET_ENV = "DYNABRAIN_HISTORY_BUDGET"
 """The environment variable that sets the default budget: bytes (``8GiB``, ``500MB``, ``1000000``) or a
@@ -309,7 +310,7 @@ def projected_state_bytes(modules: Iterable[Any]) -> dict[str, int]:
     for module in modules:
         ports = [*module.inputs(), *module.outputs()]
         bus = 8 * sum(p.size for p in ports if p.view_of is None)
-        out[module.name] = bus + (_size(module.get_state()) if _save_kind(module) == SAVE_STATE else 32)
+        out[module.name] = bus + (_size(module.get_state()) if save_kind(module) == SAVE_STATE else 32)
     return out
 
 

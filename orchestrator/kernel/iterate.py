@@ -260,15 +260,14 @@ class _Solver:
 def plan_loop(spec: LoopSpec, by_name: dict[str, ModuleRecord], direct: Sequence[Connection],
               slots: dict[str, Slot]) -> tuple[LoopRunner, list[Connection]]:
     """The runner of ``spec`` and the direct connections into its members from outside it (copied once,
-    before the loop runs). ``direct``: the structure's direct connections (delayed ones excluded)."""
-    from .structure import split_signal
-
+    before the loop runs). ``direct``: the structure's direct connections (delayed ones excluded, their
+    names checked: ``module.port``)."""
     order = {name: i for i, name in enumerate(spec.modules)}
     inner: list[list[tuple[slice, slice]]] = [[] for _ in spec.modules]
     torn: list[TornInput] = []
     outside: list[Connection] = []
     for conn in direct:
-        dst_mod, src_mod = split_signal(conn.dst)[0], split_signal(conn.src)[0]
+        dst_mod, src_mod = conn.dst.partition(".")[0], conn.src.partition(".")[0]
         if dst_mod not in order:
             continue
         if src_mod not in order:

@@ -106,14 +106,26 @@ def _plain_data_class(obj: Any) -> bool:
     return all(getattr(obj, hook, None) is getattr(object, hook, None) for hook in hooks)
 
 
+class _Unrestorable:
+    def __repr__(self) -> str:
+        return "UNRESTORABLE"
+
+    def __reduce__(self) -> str:
+        return "UNRESTORABLE"  # pickled and copied as this very object
+
+
+UNRESTORABLE = _Unrestorable()
+"""What history holds for the state of a module that cannot roll back (`structure` names it too)."""
+_UNRESTORABLE_HOMES = ("dynabrain.orchestrator.kernel.portable", "dynabrain.orchestrator.kernel.structure")
+"""Where a pickled UNRESTORABLE may say it lives (its home before it moved here, too)."""
+
+
 class _Reader(pickle.Unpickler):
     def find_class(self, module: str, name: str) -> Any:
         found = _STATE_TYPES.get((module, name))
         if found is not None:
             return found
-        if module == "dynabrain.orchestrator.kernel.structure" and name == "UNRESTORABLE":
-            from .structure import UNRESTORABLE
-
+        if module in _UNRESTORABLE_HOMES and name == "UNRESTORABLE":
             return UNRESTORABLE
         loaded = sys.modules.get(module) if module.startswith("dynabrain.") else None  # never imports
         obj = getattr(loaded, name, None) if "." not in name else None

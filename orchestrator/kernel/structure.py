@@ -298,7 +298,7 @@ def build_structure(records: Iterable[ModuleRecord], connections: Iterable[Conne
                                      int(item.phase), *_split_gather(st.copies)))
     delayed = [c for c in connections if c.delay or not by_name[split_signal(c.src)[0]].module.CAPABILITIES.feedthrough]
     delayed_mv, delayed_gather = _split_gather(_copies(layout, delayed))
-    saves = tuple(_save_kind(rec.module) for rec in records)
+    saves = tuple(save_kind(rec.module) for rec in records)
     return Structure(records, connections, layout, tuple(plan), delayed_mv, tuple(dispatch), delayed_gather, saves,
                      loops)
 
@@ -319,27 +319,17 @@ def rebind_structure(structure: Structure, modules: Mapping[str, Module]) -> Str
     plan = tuple(Step(by_name[st.record.name], st.copies) for st in structure.plan)
     dispatch = tuple(entry._replace(step=entry.step.rebound(modules) if isinstance(entry.step, LoopRunner)
                                     else by_name[entry.name].module.step) for entry in structure.dispatch)
-    saves = tuple(_save_kind(rec.module) for rec in records)
+    saves = tuple(save_kind(rec.module) for rec in records)
     return Structure(records, structure.connections, structure.layout, plan, structure.delayed, dispatch,
                      structure.delayed_gather, saves, structure.loops)
 
 
-class _Unrestorable:
-    def __repr__(self) -> str:
-        return "UNRESTORABLE"
-
-    def __reduce__(self) -> str:
-        return "UNRESTORABLE"  # pickled and copied as this very object
-
-
-UNRESTORABLE = _Unrestorable()
-"""What history holds for the state of a module that cannot roll back."""
 
 
 SAVE_NONE, SAVE_PARAMS, SAVE_STATE = 0, 1, 2
 
 
-def _save_kind(module: Module) -> int:
+def save_kind(module: Module) -> int:
     if not module.CAPABILITIES.can_rollback:
         return SAVE_NONE
     if type(module).get_state is Module.get_state and "get_state" not in vars(module):

@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from ..kernel.bodies import BodySpecError, body_from_detail
 from ..kernel.errors import DynabrainError, ModuleError, ScenarioError
 from ..kernel.observers import WorldView
+from ..kernel.specs import BodySpecError, body_from_detail
 from ..kernel.yamlsrc import MAX_FILE_BYTES
 from ..scenario.make import ModuleSpecError, make_module
 from ..scenario.model import load_scenario

@@ -25,11 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from ..kernel.bodies import parse_color
 from ..kernel.core import COLORS, FLEX_SHAPES, JOINT_KINDS, SHAPES, BodySpec, CableSpec, JointSpec, SceneSpec
 from ..kernel.errors import DynabrainError, Problem, UnitError
 from ..kernel.meshes import parse_mesh
 from ..kernel.plugins import resolve_core
+from ..kernel.specs import parse_color
 from ..kernel.suggest import did_you_mean
 from ..kernel.units import parse_quantity
 from ..kernel.yamlsrc import Path, YamlSource

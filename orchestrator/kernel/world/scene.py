@@ -8,9 +8,9 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
-from ..bodies import BodySpecError
 from ..core import MAKE_OTHERS, BodySpec, PhysicsCore
 from ..errors import DynabrainError
+from ..specs import BodySpecError
 from ..structure import Connection
 from ..suggest import did_you_mean
 from .context import Context

@@ -19,7 +19,8 @@ from ..compiled import state_saver
 from ..errors import ForkError, RollbackError
 from ..history import WorldState
 from ..module import Module
-from ..structure import SAVE_NONE, SAVE_PARAMS, UNRESTORABLE, Structure, rebind_structure
+from ..portable import UNRESTORABLE
+from ..structure import SAVE_NONE, SAVE_PARAMS, Structure, rebind_structure
 from .context import Context
 from .util import close_quietly
 

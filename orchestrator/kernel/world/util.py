@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from ..core import BodySpec
 from ..errors import DynabrainError, ModuleError, WiringError
 from ..module import Module
+from ..specs import BodySpec, quantities
 from ..structure import Connection
 from ..suggest import did_you_mean
 
@@ -113,8 +113,6 @@ def body_detail(spec: BodySpec) -> dict[str, Any]:
 
 def world_values(value: Sequence[Any], key: str) -> list[float]:
     """A joint's axis or anchor as numbers in SI (an event's detail; the core has checked them)."""
-    from ..bodies import quantities
-
     return [float(x) for x in quantities(value, 3, "length" if key == "anchor" else None)]
 
 
