@@ -97,7 +97,7 @@ def test_a_damaged_recorded_body_is_refused_and_runs_nothing(tmp_path):
     for spec in ({"name": "x", "shape": "box", "size": [0.1] * 3, "__reduce__": "os.system"},
                  {"name": "x", "shape": "mesh", "mesh": "/etc/passwd"},
                  {"name": "x", "shape": "box", "size": [0.1] * 3, "joint": {"kind": "free", "code": 1}}):
-        with pytest.raises(DynabrainError, match=r"the recording adds body 'x'.*damaged"):
+        with pytest.raises(DynabrainError, match=r"the recording's body_added \('x'\).*damaged"):
             apply_edit(world, "body_added", {"body": "x", "spec": json.loads(json.dumps(spec))})
     assert world.core.bodies() == before
     world.close()

@@ -30,6 +30,8 @@ class WorldEvent:
     kind: str
     detail: dict[str, Any] = field(default_factory=dict)
     source: str = "api"
+    edit: Any = field(default=None, compare=False)
+    """The edit as a typed record (`kernel.edits`) when the event is one; ``detail`` is its `Edit.detail`."""
 
 
 @dataclass(frozen=True)

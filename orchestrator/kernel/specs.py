@@ -12,6 +12,7 @@ logs keep them, and nothing here knows a core.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -392,3 +393,15 @@ def body_from_detail(detail: dict[str, Any]) -> BodySpec:
         return BodySpec(**fields)
     except TypeError as exc:
         raise BodySpecError(fields.get("name"), "spec", str(exc)) from None
+
+
+def body_detail(spec: BodySpec) -> dict[str, Any]:
+    """A body's spec as plain values in SI (`body_from_detail` takes them back: an event's detail, a log)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(spec):
+        value = getattr(spec, f.name)
+        if f.name == "line" or value is None:
+            continue
+        out[f.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else (
+            value.plain() if f.name == "mesh" else list(value) if isinstance(value, tuple) else value)
+    return out

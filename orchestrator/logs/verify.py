@@ -25,6 +25,7 @@ tick recorded after it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import tempfile
 import time
@@ -34,9 +35,9 @@ from typing import Any
 
 import numpy as np
 
+from ..kernel import edits
 from ..kernel.errors import DynabrainError, ModuleError, ScenarioError
 from ..kernel.observers import WorldView
-from ..kernel.specs import BodySpecError, body_from_detail
 from ..kernel.yamlsrc import MAX_FILE_BYTES
 from ..scenario.make import ModuleSpecError, make_module
 from ..scenario.model import load_scenario
@@ -46,12 +47,7 @@ from .read import BusRow, LogIndex, iter_bus, read_index
 from .scan import LogError
 from .schema import TOPIC_BUS, BusCodec
 
-EDITS = ("module_added", "module_removed", "param", "set", "make", "make_joint", "remove_joint", "no_collision",
-         "place", "connect", "disconnect", "body_added", "body_removed", "material")
-NEEDS = {"module_added": ("spec",), "module_removed": ("module",), "param": ("name", "value"),
-         "body_added": ("body", "spec"), "body_removed": ("body",), "material": ("body", "friction", "restitution"),
-         "set": ("name", "value"), "make": ("objects",), "make_joint": ("a", "b"), "remove_joint": ("joint",),
-         "no_collision": ("objects",), "place": ("body", "pos"), "connect": ("src", "dst"), "disconnect": ("dst",),
+NEEDS = {**{kind: cls.needs() for kind, cls in edits.EDITS.items()},
          "rollback": ("from_tick", "to_tick", "cause"), "error": (), "snapshot": ("id",)}
 """What the detail of each replayed event kind must hold."""
 
@@ -188,7 +184,7 @@ class _Replay:
         self.epoch = self.compared = self.stepped = 0
         self._layout_ok: tuple[int, int] | None = None
         self.actions = [_checked(e, path) for e in index.events if e.get("kind") in ("rollback", "error")
-                        or (e.get("source") == "api" and e.get("kind") in (*EDITS, "snapshot"))]
+                        or (e.get("source") == "api" and e.get("kind") in (*edits.EDITS, "snapshot"))]
         self.restore_ticks = {int(e["detail"]["to_tick"]) for e in self.actions
                               if e["kind"] == "rollback" and e["detail"].get("cause") == "restore"}
         self.snapshots: dict[int, list[Any]] = {}
@@ -353,53 +349,22 @@ def _checked(event: dict, path: str) -> dict:
 
 
 def apply_edit(world: Any, kind: str, d: dict, base_dir: str = ".") -> None:
-    """Make a recorded edit again (an event of kind ``kind`` with detail ``d``). A module is made by the
-    world's ``module_factory`` (under the rules its scenario was loaded with: `rebuild`), else by
-    `make_module` with no more than dynabrain's own and the registered classes; an FMU's path is
-    relative to ``base_dir`` (the recorded scenario's folder)."""
-    if kind == "module_added":
-        spec = d["spec"]
-        if not isinstance(spec, dict):
-            raise LogError(f"the recording adds a module at tick {world.tick_count} whose spec is damaged: "
-                           f"{spec!r:.80}")
-        try:
-            factory = getattr(world, "module_factory", None)
-            module = factory(spec) if factory is not None else make_module(spec, base_dir=base_dir,
-                                                                            local_modules=False)
-        except ModuleSpecError as exc:  # nothing to compare with: the recording cannot be replayed here
-            raise LogError(f"the recording adds module {spec.get('name')!r} at tick {world.tick_count}, which "
-                           f"cannot be made here: {exc}") from None
-        world.add_module(module, period=spec.get("period"), connect=spec.get("connect", ()))
-    elif kind == "module_removed":
-        world.remove_module(d["module"])
-    elif kind in ("param", "set"):
-        world.set(d["name"], d["value"])
-    elif kind == "make":  # (a recording from before ``others`` was recorded froze the others)
-        world.make(d["objects"], others=d.get("others", "frozen"))
-    elif kind == "no_collision":
-        world.no_collision(d["objects"])
-    elif kind == "make_joint":
-        world.make_joint(d["a"], d["b"], name=d.get("joint"), kind=d.get("kind", "weld"), axis=d.get("axis"),
-                         anchor=d.get("anchor"))
-    elif kind == "body_added":
-        try:  # a recorded body is plain values (a mesh's vertices and faces, not its file): no code runs
-            spec = body_from_detail(d["spec"])
-        except BodySpecError as exc:
-            raise LogError(f"the recording adds body {d.get('body')!r} at tick {world.tick_count}, whose recorded "
-                           f"spec is damaged: {exc}") from None
-        world.add_body(spec)
-    elif kind == "body_removed":
-        world.remove_body(d["body"])
-    elif kind == "material":
-        world.set_material(d["body"], friction=d["friction"], restitution=d["restitution"], mass=d.get("mass"))
-    elif kind == "remove_joint":
-        world.remove_joint(d["joint"])
-    elif kind == "place":
-        world.place(d["body"], d["pos"], d.get("quat"))
-    elif kind == "connect":
-        world.connect(d["src"], d["dst"], delay=bool(d.get("delay", False)))
-    elif kind == "disconnect":
-        world.disconnect(d["dst"])
+    """Make a recorded edit again (an event of kind ``kind`` with detail ``d``: `kernel.edits`). A module
+    is made by the world's ``module_factory`` (under the rules its scenario was loaded with: `rebuild`),
+    else by `make_module` with no more than dynabrain's own and the registered classes; an FMU's path
+    is relative to ``base_dir`` (the recorded scenario's folder)."""
+    try:
+        edit = edits.edit_of(kind, d)
+    except edits.EditFormatError as exc:
+        named = next((d[k] for k in ("body", "module", "joint", "name") if isinstance(d, dict) and k in d), None)
+        raise LogError(f"the recording's {kind}" + (f" ({named!r})" if named is not None else "")
+                       + f" at tick {world.tick_count} is damaged: {exc}") from None
+    maker = world.module_factory or functools.partial(make_module, base_dir=base_dir, local_modules=False)
+    try:
+        edit.apply(world, maker)
+    except ModuleSpecError as exc:  # nothing to compare with: the recording cannot be replayed here
+        raise LogError(f"the recording adds module {d['spec'].get('name')!r} at tick {world.tick_count}, which "
+                       f"cannot be made here: {exc}") from None
 
 
 def _value(values: np.ndarray, shape: tuple[int, ...]) -> Any:

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from ..kernel import edits
 from ..kernel.bodies import joint_kind
 from ..kernel.core import MAKE_OTHERS
 from ..kernel.errors import DynabrainError, UnitError
@@ -151,6 +152,15 @@ def build_event(ev: EventCfg, world: World, builder: _Builder, path: Path) -> tu
     return run, "+".join(labels)
 
 
+def _applying(*records: edits.Edit) -> Callable[[World], None]:
+    """The action of an event made of these edits (`kernel.edits`), applied in order."""
+    def apply(w: World) -> None:
+        for record in records:
+            record.apply(w)
+
+    return apply
+
+
 def _set(value: dict[str, Any], world: World, builder: _Builder, path: Path):
     timeline = builder.timeline
     for name, val in value.items():
@@ -181,11 +191,7 @@ def _set(value: dict[str, Any], world: World, builder: _Builder, path: Path):
         if problem:
             builder.report((*path, name), problem)
 
-    def apply(w: World) -> None:
-        for name, val in value.items():
-            w.set(name, val)
-
-    return apply
+    return _applying(*(edits.Set(name, val) for name, val in value.items()))
 
 
 def _value_problem(world: World, target: str | tuple[Any, str], value: Any) -> str | None:
@@ -249,7 +255,7 @@ def _remove(value: str, world: World, builder: _Builder, path: Path):
         problem = builder.timeline.remove(value)
         if problem:
             builder.report(path, f"remove: {problem}")
-    return lambda w: w.remove_module(value)
+    return _applying(edits.RemoveModule(value))
 
 
 def _objects(call: str):
@@ -277,9 +283,9 @@ def _objects(call: str):
             timeline.selection = set(chosen)
         elif call == "no_collision" and len(chosen) < 2 and len(chosen) == len(value):
             builder.report(path, f"no_collision needs at least two bodies, got {short(value)}")
-        if call == "make" and others != "frozen":
-            return lambda w: w.make(value, others=others)
-        return lambda w: getattr(w, call)(value)
+        if call == "make":
+            return _applying(edits.Make(tuple(value), others))
+        return _applying(edits.NoCollision(tuple(value)))
 
     return check
 
@@ -354,7 +360,7 @@ def _make_joint(value: Any, world: World, builder: _Builder, path: Path, known: 
     if joint in builder.timeline.joints:
         builder.report(path, f"the joint {joint!r} is made already at this time")
     builder.timeline.joints.add(joint)
-    return lambda w: w.make_joint(a, b, name, **kwargs)
+    return _applying(edits.MakeJoint(a, b, name, kwargs.get("kind", "weld"), kwargs.get("axis"), kwargs.get("anchor")))
 
 
 def _material(name: str, world: World, timeline: Timeline) -> tuple[str, str] | None:
@@ -400,7 +406,7 @@ def _add_body(value: dict[str, Any], world: World, builder: _Builder, path: Path
     if timeline.selection is not None:
         timeline.selection.add(spec.name)  # a new body is simulated
     builder.later_modules.add(spec.name)  # (so that expectations may read it)
-    return lambda w: w.add_body(spec)
+    return _applying(edits.AddBody(spec))
 
 
 def _remove_joint(value: str, world: World, builder: _Builder, path: Path):
@@ -414,7 +420,7 @@ def _remove_joint(value: str, world: World, builder: _Builder, path: Path):
                        + f"; joints made by then: {made}")
     else:
         joints.discard(value)
-    return lambda w: w.remove_joint(value)
+    return _applying(edits.RemoveJoint(value))
 
 
 def _remove_body(value: str, world: World, builder: _Builder, path: Path):
@@ -435,7 +441,7 @@ def _remove_body(value: str, world: World, builder: _Builder, path: Path):
         timeline.added.discard(value)
         if timeline.selection is not None:
             timeline.selection.discard(value)
-    return lambda w: w.remove_body(value)
+    return _applying(edits.RemoveBody(value))
 
 
 def _place(value: dict[str, Any], world: World, builder: _Builder, path: Path):
@@ -462,16 +468,12 @@ def _place(value: dict[str, Any], world: World, builder: _Builder, path: Path):
         except DynabrainError as exc:
             builder.report((*path, name), str(exc))
 
-    def place(w: World) -> None:
-        for name, (pos, quat) in poses.items():
-            w.place(name, pos, quat)
-
-    return place
+    return _applying(*(edits.Place(name, pos, quat) for name, (pos, quat) in poses.items()))
 
 
 def _connect(value: list[Any], world: World, builder: _Builder, path: Path):
     conn = _check_connection(value, world, builder, path)
-    return lambda w: w.connect(conn.src, conn.dst, delay=conn.delay)
+    return _applying(edits.Connect(conn.src, conn.dst, conn.delay))
 
 
 def _check_connection(value: Any, world: World, builder: _Builder, path: Path):
@@ -495,7 +497,7 @@ def _disconnect(value: str, world: World, builder: _Builder, path: Path):
         problem = builder.timeline.disconnect(value)
         if problem:
             builder.report(path, problem)
-    return lambda w: w.disconnect(value)
+    return _applying(edits.Disconnect(value))
 
 
 def _check_signal(world: World, builder: _Builder, name: str, path: Path) -> bool:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..core import PhysicsCore
+from ..edits import Edit
 from ..errors import DynabrainError, WiringError, WorldClosedError
 from ..history import History
 from ..module import Module
@@ -76,10 +77,17 @@ class Context:
         for obs in self.observers:
             obs.on_event(self.view, event)
 
-    def edited(self, kind: str, /, **detail: Any) -> None:
+    def edited(self, edit: Edit) -> None:
         """An edit at this tick: part of the tick's state (saved again before the next step), and told."""
         self.dirty = True
-        self.emit(kind, **detail)
+        self.tell(edit)
+
+    def tell(self, edit: Edit) -> None:
+        """Tell the observers of an edit (a `WorldEvent` with its record and its detail)."""
+        if self.observers:
+            event = WorldEvent(self.tick, edit.kind, edit.detail(), self.source, edit)
+            for obs in self.observers:
+                obs.on_event(self.view, event)
 
     def rolled_back(self, from_tick: int) -> None:
         for obs in self.observers:

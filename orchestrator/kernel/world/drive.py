@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import edits
 from ..errors import DynabrainError, ModuleError, WiringError
 from ..observers import Imagined
 from .context import Context
@@ -52,7 +53,7 @@ class Drive:
                         bus[8 * slot.start:8 * slot.start + size] = row
                         spans.append((slot.start, row))
                         if ctx.observers:
-                            ctx.emit("set", name=name, value=values[k].reshape(slot.shape).tolist())
+                            ctx.tell(edits.Set(name, values[k].reshape(slot.shape).tolist()))
                     self.timeline.keep_inputs(spans)
                 self.stepper.steps(1)
                 for at, size, row in recs:

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import edits
 from ..errors import DynabrainError, WiringError
 from ..module import Module
 from ..structure import Slot
@@ -74,12 +75,12 @@ class Names:
             values = arr.reshape(-1)
             ctx.buf[slot.start:slot.start + slot.size] = values
             self.timeline.keep_inputs([(slot.start, values.tobytes())])
-            ctx.emit("set", name=target, value=arr.tolist())
+            ctx.tell(edits.Set(target, arr.tolist()))
             return
         module, key = target
         module.set_param(key, value, running=ctx.tick > 0)  # its binding tells `Context.param_changed`
         new = module.params[key]
-        ctx.edited("param", name=f"{module.name}.{key}", value=new.tolist() if hasattr(new, "tolist") else new)
+        ctx.edited(edits.SetParam(f"{module.name}.{key}", new.tolist() if hasattr(new, "tolist") else new))
 
     def settable(self, name: str) -> str | tuple[Module, str]:
         """An input signal's full name, or (module, parameter); raises naming the closest settable name."""

@@ -8,13 +8,14 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
+from .. import edits
 from ..core import MAKE_OTHERS, BodySpec, PhysicsCore
 from ..errors import DynabrainError
 from ..specs import BodySpecError
 from ..structure import Connection
 from ..suggest import did_you_mean
 from .context import Context
-from .util import body_detail, expand_names, names_of, world_values
+from .util import expand_names, names_of, world_values
 from .wiring import Wiring
 
 MATERIAL_KEYS = ("friction", "restitution", "mass")
@@ -38,7 +39,7 @@ class SceneEdits:
             core.make(names)  # (a core of another author may not take ``others``)
         else:
             core.make(names, others)
-        self.ctx.edited("make", objects=names, others=others)
+        self.ctx.edited(edits.Make(tuple(names), others))
 
     def make_joint(self, a: str, b: str, name: str | None, kind: str, axis: Sequence[Any] | None,
                    anchor: Sequence[Any] | None) -> str:
@@ -47,16 +48,13 @@ class SceneEdits:
         extra = {k: v for k, v in (("axis", axis), ("anchor", anchor)) if v is not None}
         joint = core.make_joint(a, b, name, kind=kind, **extra) if extra or kind != "weld" else \
             core.make_joint(a, b, name)
-        detail: dict[str, Any] = {"a": a, "b": b, "joint": joint}
-        if kind != "weld" or extra:
-            detail["kind"] = kind
-            detail.update({k: world_values(v, k) for k, v in extra.items()})
-        self.ctx.edited("make_joint", **detail)
+        si = {k: tuple(world_values(v, k)) for k, v in extra.items()}
+        self.ctx.edited(edits.MakeJoint(a, b, joint, kind, si.get("axis"), si.get("anchor")))
         return joint
 
     def remove_joint(self, name: str) -> None:
         self.ctx.require_core("remove_joint").remove_joint(name)
-        self.ctx.edited("remove_joint", joint=name)
+        self.ctx.edited(edits.RemoveJoint(name))
 
     # -- bodies at run time (the core's ports change: the structure is installed again) -----------------
     def add_body(self, spec: BodySpec | None, fields: dict[str, Any]) -> str:
@@ -69,13 +67,13 @@ class SceneEdits:
             raise DynabrainError(f"add_body(): {exc} (a BodySpec, or its fields by name: name, shape, size, "
                                  "pos, quat, mass, color, joint, friction, restitution, mesh, scale)") from None
         self._edit_bodies(core, lambda: core.add_body(spec))
-        self.ctx.edited("body_added", body=spec.name, spec=body_detail(spec))
+        self.ctx.edited(edits.AddBody(spec))
         return spec.name
 
     def remove_body(self, name: str) -> None:
         core = self.ctx.require_core("remove_body")
         dropped = self._edit_bodies(core, lambda: core.remove_body(name))
-        self.ctx.edited("body_removed", body=name, disconnected=[str(c) for c in dropped])
+        self.ctx.edited(edits.RemoveBody(name, tuple(str(c) for c in dropped)))
 
     def _edit_bodies(self, core: PhysicsCore, edit: Callable[[], None]) -> list[Connection]:
         """Make a core edit that changes the core's ports, then install a structure with its new ports
@@ -94,7 +92,7 @@ class SceneEdits:
         expand_names([body], core.bodies(), "body", "set_material")
         core.set_material(body, **values)
         m = core.material(body)
-        self.ctx.edited("material", body=body, friction=m.friction, restitution=m.restitution, mass=m.mass)
+        self.ctx.edited(edits.SetMaterial(body, m.friction, m.restitution, m.mass))
 
     def material_target(self, name: str) -> tuple[str, str] | None:
         """(body, ``friction``, ``restitution`` or ``mass``) when ``name`` is ``<core>.<body>.friction``,
@@ -112,12 +110,11 @@ class SceneEdits:
         core = self.ctx.require_core("no_collision")
         names = expand_names(names_of(objects), core.bodies(), "body", "no_collision")
         core.no_collision(names)
-        self.ctx.edited("no_collision", objects=names)
+        self.ctx.edited(edits.NoCollision(tuple(names)))
 
     def place(self, body: str, pos: Sequence[float], quat: Sequence[float] | None) -> None:
         core = self.ctx.require_core("place")
         expand_names([body], core.bodies(), "body", "place")
         core.place(body, pos, quat)
         core.refresh_outputs()
-        self.ctx.edited("place", body=body, pos=list(map(float, pos)),
-                        quat=None if quat is None else list(map(float, quat)))
+        self.ctx.edited(edits.Place(body, tuple(map(float, pos)), None if quat is None else tuple(map(float, quat))))

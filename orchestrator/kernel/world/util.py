@@ -4,7 +4,6 @@ calls into a module that name it when they fail, and the lock as `World.lock` ha
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import fnmatch
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
@@ -13,7 +12,7 @@ import numpy as np
 
 from ..errors import DynabrainError, ModuleError, WiringError
 from ..module import Module
-from ..specs import BodySpec, quantities
+from ..specs import quantities
 from ..structure import Connection
 from ..suggest import did_you_mean
 
@@ -97,18 +96,6 @@ def same_params(current: dict[str, Any], values: dict[str, Any]) -> dict[str, An
         elif type(mine) is not type(value) or mine != value:
             return values
     return current
-
-
-def body_detail(spec: BodySpec) -> dict[str, Any]:
-    """A body's spec as plain values in SI (an event's detail: logs, replay)."""
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(spec):
-        value = getattr(spec, f.name)
-        if f.name == "line" or value is None:
-            continue
-        out[f.name] = dataclasses.asdict(value) if dataclasses.is_dataclass(value) else (
-            value.plain() if f.name == "mesh" else list(value) if isinstance(value, tuple) else value)
-    return out
 
 
 def world_values(value: Sequence[Any], key: str) -> list[float]:

@@ -9,6 +9,7 @@ import dataclasses
 from collections.abc import Iterable, Sequence
 from typing import Any
 
+from .. import edits
 from ..core import PhysicsCore
 from ..errors import DynabrainError, WiringError
 from ..iterate import LoopReport, LoopSpec, loops_without
@@ -58,7 +59,7 @@ class Wiring:
         ctx.known[id(module)] = module
         if isinstance(module, PhysicsCore):
             ctx.core = module
-        ctx.edited("module_added", module=module.name, spec=module_spec(module, period_ns, conns))
+        ctx.edited(edits.AddModule(module.name, module_spec(module, period_ns, conns)))
 
     def setup(self, module: Module, period_ns: int) -> None:
         """``module.setup`` with this world's context (its own random generator, the core)."""
@@ -76,13 +77,13 @@ class Wiring:
         conns = [c for c in ctx.structure.connections
                  if split_signal(c.src)[0] != name and split_signal(c.dst)[0] != name]
         ctx.install(build_structure(records, conns, loops_without(ctx.structure.loops, name)), carry_values=True)
-        ctx.edited("module_removed", module=name)
+        ctx.edited(edits.RemoveModule(name))
 
     def connect(self, src: str, dst: str, delay: bool) -> None:
         s = self.ctx.structure
         self.ctx.install(build_structure(s.records, (*s.connections, Connection(src, dst, delay)), s.loops),
                          carry_values=True)
-        self.ctx.edited("connect", src=src, dst=dst, delay=delay)
+        self.ctx.edited(edits.Connect(src, dst, delay))
 
     def disconnect(self, dst: str) -> None:
         s = self.ctx.structure
@@ -90,13 +91,12 @@ class Wiring:
             raise WiringError(f"no connection drives {dst!r}")
         self.ctx.install(build_structure(s.records, [c for c in s.connections if c.dst != dst], s.loops),
                          carry_values=True)
-        self.ctx.edited("disconnect", dst=dst)
+        self.ctx.edited(edits.Disconnect(dst))
 
     def iterate(self, spec: LoopSpec) -> None:
         s = self.ctx.structure
         self.ctx.install(build_structure(s.records, s.connections, (*s.loops, spec)), carry_values=True)
-        self.ctx.edited("iterate_declared", loop=spec.name, modules=list(spec.modules), tolerance=spec.tolerance,
-                        max_iterations=spec.max_iterations)
+        self.ctx.edited(edits.DeclareLoop(spec.name, spec.modules, spec.tolerance, spec.max_iterations))
 
     def loop_report(self, name: str) -> LoopReport | None:
         runners = self.ctx.structure.runners
