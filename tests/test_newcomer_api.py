@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import dynabrain.orchestrator as face
-from dynabrain.orchestrator import DynabrainError, load_world
+from dynabrain.orchestrator import DynabrainError, World, load_world
 
 
 @pytest.fixture()
@@ -56,3 +56,17 @@ def test_a_missing_name_says_so_and_the_face_is_public():
         load_world("no_such_scenario")
     assert {"Any", "TYPE_CHECKING", "importlib", "annotations"}.isdisjoint(dir(face))
     assert "World" in dir(face) and "load_world" in dir(face)
+
+
+def test_the_papers_fig8_in_a_few_lines_with_an_engines_name():
+    w = World(core="mujoco")
+    w.add_body(name="aa", shape="box", size=["100mm"] * 3, mass="50g", pos=["50mm", "50mm", "600mm"], color="blue")
+    w.add_body(name="bb", shape="box", size=["200mm", "200mm", "150mm"], mass="60g", pos=[0, 0, "800mm"],
+               color="yellow")
+    w.make(["aa", "bb"])
+    w.tick("3s")
+    assert w.core.name == "core" and "floor" in w.core.objects()
+    assert abs(w.get("aa.z") - 0.05) < 0.003 and w.get("bb.z") < 0.3  # on the floor, not through it
+    w.close()
+    with pytest.raises(DynabrainError, match="unknown core 'mujco'.*mujoco"):
+        World(core="mujco")

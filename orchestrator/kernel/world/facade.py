@@ -17,18 +17,21 @@ from typing import Any
 import numpy as np
 
 from ..compiled import compiled_by_default
-from ..core import KEEP, BodySpec, PhysicsCore
+from ..core import KEEP, BodySpec, PhysicsCore, SceneSpec
 from ..errors import DynabrainError, RollbackError
 from ..history import History, WorldState
 from ..iterate import LoopReport, LoopSpec
 from ..module import Module
 from ..observers import Imagined, Observer, WorldView
+from ..plugins import resolve_core
 from ..structure import Connection
 from ..units import NS_PER_S, parse_duration_ns
 from .context import Context, ScheduledAction
 from .parts import Parts
 from .util import Lock
 
+FLOOR_HALF_M = 2.0
+"""Half the side of the floor a world made with an engine's name stands on."""
 KEYFRAME_EVERY = 2
 """History's default: a whole state every 2 ticks (`World`'s ``keyframe_every``)."""
 
@@ -45,10 +48,14 @@ class World:
     ``module_factory`` makes a module from its spec when `import_state` brings one this world lacks;
     ``rebuild`` is a picklable call that builds this world again as it was at t=0 (a batch's worker
     processes use it). `load_world` gives both. A fork keeps all of these.
+
+    ``core`` is a `PhysicsCore`, or an engine's name (``"mujoco"``, ``"exudyn"``) for a core named
+    ``core`` on a 4 m square floor: the paper's Fig. 8 is ``w = World(core="mujoco")``, two
+    `add_body` calls, ``w.make(["aa", "bb"])`` and ``w.tick("5s")``.
     """
 
     def __init__(self, name: str = "world", *, step: int | str = "2ms", seed: int = 0,
-                 history: int = 1000, core: PhysicsCore | None = None, compiled: bool | None = None,
+                 history: int = 1000, core: PhysicsCore | str | None = None, compiled: bool | None = None,
                  keyframe_every: int = KEYFRAME_EVERY,
                  module_factory: Callable[[dict[str, Any]], Module] | None = None,
                  rebuild: Callable[[], World] | None = None):
@@ -65,6 +72,9 @@ class World:
         ctx = self._ctx = Context(name, self.dt_ns, self.seed, kept, compiled, module_factory, rebuild)
         ctx.world, ctx.view = self, WorldView(self)
         self._p = Parts.of(ctx)
+        if isinstance(core, str):  # an engine's name: a core named "core" on a floor
+            floor = BodySpec("floor", "plane", (FLOOR_HALF_M, FLOOR_HALF_M), color="grey")
+            core = resolve_core(core)("core", SceneSpec(bodies=(floor,)))
         if core is not None:
             self.add_module(core)
 
