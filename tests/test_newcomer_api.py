@@ -68,5 +68,5 @@ def test_the_papers_fig8_in_a_few_lines_with_an_engines_name():
     assert w.core.name == "core" and "floor" in w.core.objects()
     assert abs(w.get("aa.z") - 0.05) < 0.003 and w.get("bb.z") < 0.3  # on the floor, not through it
     w.close()
-    with pytest.raises(DynabrainError, match="unknown core 'mujco'.*mujoco"):
+    with pytest.raises(DynabrainError, match=r"unknown core 'mujco'.*mujoco"):
         World(core="mujco")
