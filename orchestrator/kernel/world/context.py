@@ -42,6 +42,7 @@ class Context:
                  rebuild: Callable[[], World] | None):
         self.name, self.dt_ns, self.seed, self.compiled = name, dt_ns, seed, compiled
         self.lock = threading.RLock()
+        self.open = _Open(self)  # ``with ctx.open:`` the lock, held on a world that is open
         self.history = history
         self.structure = build_structure((), ())
         self.buf = np.zeros(0)
@@ -175,3 +176,22 @@ class Context:
             if (old is not None and old.size == slot.size and slot.port.view_of is not None
                     and f"{name.partition('.')[0]}.{slot.port.view_of[0]}" in resized):
                 buf[slot.start:slot.start + slot.size] = old_buf[old.start:old.start + old.size]
+
+
+class _Open:
+    """``with ctx.open:``: take the world lock, and raise `WorldClosedError` (the lock let go) when the
+    world is closed."""
+
+    __slots__ = ("ctx",)
+
+    def __init__(self, ctx: Context):
+        self.ctx = ctx
+
+    def __enter__(self) -> None:
+        self.ctx.lock.acquire()
+        if self.ctx.closed:
+            self.ctx.lock.release()
+            self.ctx.check_open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.ctx.lock.release()

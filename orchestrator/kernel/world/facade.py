@@ -122,7 +122,7 @@ class World:
         """Advance ``n`` base steps (d-tick), or a duration: ``"1s"``, ``"250ms"``, or seconds as a float,
         a whole number of steps."""
         count = self.ticks_of(n, "tick")
-        with self._ctx.lock:
+        with self._ctx.lock:  # (not ``open``: a brain may tick one at a time; the C lock is cheaper)
             self._ctx.check_open()
             self._p.stepper.steps(count)
 
@@ -134,22 +134,19 @@ class World:
     def backtick(self, n: int = 1) -> None:
         """Go back ``n`` ticks, exactly (d-backtick): stepping forward again with the same inputs
         reproduces every state bit for bit."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             if n != 0:
                 self._p.timeline.backtick(n)
 
     def snapshot(self) -> WorldState:
         """The whole world's state now; `restore` brings it back. Each snapshot has an ``id``, and
         observers get a ``snapshot`` event with it (a replay can then restore the same one)."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             return self._p.timeline.snapshot()
 
     def restore(self, state: WorldState) -> None:
         """Return to a snapshot of this world. History restarts at the restored state."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             if not isinstance(state, WorldState) or state.world_id != self._ctx.id:
                 raise RollbackError("restore() takes a snapshot made by this same world (use fork() to copy)")
             self._p.timeline.check_restorable(state, "restore")
@@ -159,8 +156,7 @@ class World:
         """An independent world in the same state (for prediction: plan, try, discard), sharing what
         never changes (`Timeline.fork_into`). Close forks you are done with: a MuJoCo core's next fork
         takes over the closed one's data. The humanoid's fork costs are in ``bench/predict.py``."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             other = World(name or f"{self.name}-fork", step=self.dt_ns, seed=self.seed,
                           history=self._ctx.history.depth, compiled=self._ctx.compiled,
                           keyframe_every=self._ctx.history.every)
@@ -172,27 +168,23 @@ class World:
                    connect: Iterable[Connection | Sequence[Any]] = ()) -> None:
         """Add a module at the current tick (also while running): set up, bound and started now; on
         any failure the world is left as it was."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             self._p.wiring.add_module(module, period, connect)
 
     def remove_module(self, name: str) -> None:
         """Remove a module at the current tick. Inputs it drove keep their last value. The module
         stays alive (a rollback may bring it back) until the world closes."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             self._p.wiring.remove_module(name)
 
     def connect(self, src: str, dst: str, *, delay: bool = False) -> None:
         """Connect output ``src`` to input ``dst`` (both ``module.port``)."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             self._p.wiring.connect(src, dst, bool(delay))
 
     def disconnect(self, dst: str) -> None:
         """Remove the connection driving input ``dst`` (it keeps its last value)."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             self._p.wiring.disconnect(dst)
 
     def iterate(self, modules: Sequence[str], *, name: str | None = None, tolerance: float = 1e-9,
@@ -202,8 +194,7 @@ class World:
         the torn values agree within ``tolerance`` (relative, plus as much absolute), at most
         ``max_iterations`` times, else the tick fails with `LoopNotConvergedError` and is rolled back.
         ``modules`` step in the order given; declare the loop before connecting it (`kernel.iterate`)."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             spec = LoopSpec(name or "loop_" + "_".join(modules), tuple(modules), float(tolerance), max_iterations)
             self._p.wiring.iterate(spec)
             return spec
@@ -280,15 +271,13 @@ class World:
         """A signal (``module.port``; ``body.pos`` is short for the core's), a parameter (``module.param``),
         a body's material, or a body's field as expressions read it (``body.x``, ``.y``, ``.z``,
         ``.speed``, ``.vel``, ``.angvel``). Signals come back as copies."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             return self._p.names.get(name)
 
     def set(self, name: str, value: Any) -> None:
         """Set a run-time parameter (``module.param``), an unconnected input (``module.port``) or a body's
         material (``core.<body>.friction``, ``.restitution``, ``.mass``: `set_material`)."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             self._p.names.set(name, value)
 
     def settable(self, name: str) -> str | tuple[Module, str]:
@@ -327,8 +316,7 @@ class World:
         ``/imagined/<name>/<branch>/...``). ``signals`` maps a signal to its values after each tick from
         ``start_tick`` on, shape ``(ticks, *shape)``; a signal of this world must have its shape, any
         other name is kept as given. The world does not change; a rollback does not discard it."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             return self._p.drive.imagine(name, start_tick, signals, branch)
 
     # -- driven runs, the loop in a thread ------------------------------------------------------------
@@ -338,8 +326,7 @@ class World:
         (arrays of shape ``(ticks, *port shape)``), after it each signal in ``record`` is copied into row
         k. Returns ``{signal: array (ticks, *shape)}``. Names and shapes are checked first; a failed tick
         is rolled back as by `tick`, and its `ModuleError` carries ``recorded`` and ``ticks_done``."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             if int(ticks) < 0:
                 raise DynabrainError(f"run({ticks}): the number of ticks must be >= 0")
             return self._p.drive.run(int(ticks), inputs or {}, record)
@@ -347,8 +334,7 @@ class World:
     def start(self, realtime: bool | float = False, *, until: float | None = None) -> None:
         """Run the loop in a thread (d-start). ``realtime``: False as fast as possible, True at real
         time, a number for a speed factor. ``until``: stop by itself at this simulated time (s)."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             factor = 1.0 if realtime is True else (float(realtime) if realtime else None)
             self._p.realtime.start(factor, None if until is None else round(until * NS_PER_S / self.dt_ns))
 
@@ -364,16 +350,14 @@ class World:
     def export_state(self, snapshot: WorldState | None = None) -> bytes:
         """The whole state (now, or of ``snapshot``) as versioned bytes that `import_state` takes back,
         in this world or in another built the same way (layout: `kernel.portable`)."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             return self._p.transfer.export(snapshot)
 
     def import_state(self, data: bytes) -> None:
         """Take back a state from `export_state`. Modules it has and this world lacks are made with
         ``module_factory``; modules only this world has leave. Refused, the world unchanged, when the
         worlds do not match (step, a module's class or ports, the version). History restarts there."""
-        with self._ctx.lock:
-            self._ctx.check_open()
+        with self._ctx.open:
             self._p.transfer.import_(data)
 
     def check_state(self, data: bytes) -> None:
