@@ -83,7 +83,7 @@ class PDServo(Module):
         self.out["force"][...] = 0.0
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        p = self._param_values
+        p = self.params
         f = p["kp"] * (self._target - self._q) - p["kd"] * self._qd
         np.clip(f, -p["max_force"], p["max_force"], out=self._force)
 

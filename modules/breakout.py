@@ -179,7 +179,7 @@ class Paddle(Module):
             self.out[port][...] = 0.0
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        p, inp, out = self._param_values, self.inp, self.out
+        p, inp, out = self.params, self.inp, self.out
         ball, vel = inp["ball_pos"], inp["ball_vel"]
         if not self._served:
             impulse = p["ball_mass"] / (dt_ns * 1e-9)
@@ -199,7 +199,7 @@ class Paddle(Module):
 
     def _target(self, x: float, y: float, vx: float, vy: float, aim: np.ndarray) -> float:
         """Paddle x that returns the ball towards ``aim``; under the ball while it flies away."""
-        p = self._param_values
+        p = self.params
         if vy >= -1e-3:
             return x
         speed = math.hypot(vx, vy)

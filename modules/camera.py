@@ -132,12 +132,11 @@ class Camera(Module):
                 self._gl.free()
                 self._gl = None
 
-    def __deepcopy__(self, memo: dict) -> Camera:
+    def fork(self, memo: dict) -> Camera:
         """A fork's camera: same configuration, the copied core, its own GL context (opened lazily)."""
         twin = copy.copy(self)
         memo[id(self)] = twin
         twin.bind_ports(None)
-        twin._param_values = dict(self._param_values)
         twin._link = copy.deepcopy(self._link, memo)
         twin._gl, twin._mjr = None, None
         return twin

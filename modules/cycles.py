@@ -50,7 +50,7 @@ class CycleMeter(Module):
         x = float(self.inp["x"])
         if not math.isfinite(x):
             return
-        band = self._param_values["deadband"]
+        band = self.params["deadband"]
         if self._dir == 0:  # not moving yet: wait until the signal leaves its start by the deadband
             if math.isnan(self._start):
                 self._start = x
@@ -70,7 +70,7 @@ class CycleMeter(Module):
         """The turning point at ``self._extreme`` is confirmed; the signal now goes the other way."""
         if not math.isnan(self._last):
             amplitude = abs(self._extreme - self._last) / 2
-            if self._swings < self._param_values["max_peaks"]:
+            if self._swings < self.params["max_peaks"]:
                 self.out["peaks"][self._swings] = amplitude
             self._swings += 1
             self.out["amplitude"][...] = amplitude

@@ -74,7 +74,7 @@ class MovingFloor(Module):
 
     def __init__(self, name: str, **kwargs: Any):
         super().__init__(name, **kwargs)
-        self._check(self._param_values)
+        self._check(self.params)
 
     def _check(self, p: dict[str, Any]) -> None:
         for key in ("frequency", "tilt_frequency", "ramp", "kp", "kd", "mass", "tilt_kp", "tilt_kd", "inertia"):
@@ -84,7 +84,7 @@ class MovingFloor(Module):
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
         spec = self.param_specs().get(name)
         if spec is not None:  # refuse a bad value before it becomes the parameter's value
-            self._check({**self._param_values, name: spec.convert(value)})
+            self._check({**self.params, name: spec.convert(value)})
         super().set_param(name, value, running=running)
 
     def inputs(self) -> list[Port]:
@@ -109,13 +109,13 @@ class MovingFloor(Module):
         self._law_of: dict[str, Any] | None = None
 
     def start(self, t_ns: int) -> None:
-        p, t = self._param_values, t_ns * 1e-9
+        p, t = self.params, t_ns * 1e-9
         self._state = (0.0, math.fmod(TWO_PI * p["frequency"] * t, TWO_PI),
                        math.fmod(TWO_PI * p["tilt_frequency"] * t, TWO_PI))
         self._drive(0.0)
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        if self._param_values is not self._law_of:
+        if self.params is not self._law_of:
             self._take_law()
         h = dt_ns * 1e-9
         envelope, phi, psi = self._state
@@ -128,7 +128,7 @@ class MovingFloor(Module):
     def _take_law(self) -> None:
         """Cache the law's constants for the current parameter dict (copy-on-write: a new dict is a
         change): the envelope's target and speed, and per axis (amplitude, 2 pi f, kp, kd, mass)."""
-        p = self._law_of = self._param_values
+        p = self._law_of = self.params
         self._target = 1.0 if p["enabled"] else 0.0
         self._speed = 1.0 / p["ramp"] if p["ramp"] > 0 else math.inf
         self._axes = tuple((p[amp], TWO_PI * p[freq], p[kp], p[kd], p[inertia])
@@ -142,7 +142,7 @@ class MovingFloor(Module):
 
     def _drive(self, de: float) -> None:
         """References and drive forces from the state and the inputs (both axes)."""
-        if self._param_values is not self._law_of:
+        if self.params is not self._law_of:
             self._take_law()
         e, phi, psi = self._state
         (amp, omega, kp, kd, inertia), (t_amp, t_omega, t_kp, t_kd, t_inertia) = self._axes

@@ -43,10 +43,10 @@ class SwingPolicy(LegPump):
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
-        speed = self._param_values["speed"]
+        speed = self.params["speed"]
         if not speed > 0:
             raise DynabrainError(f"module {name!r} [params.speed]: must be positive, got {speed!r}")
 
     def drive(self, angle: float, rate: float) -> float:
-        p = self._param_values
+        p = self.params
         return math.tanh(p["w_angle"] * angle + p["w_rate"] * rate + p["bias"])

@@ -243,12 +243,11 @@ class HandPush(Module):
         if name == "push" and value:
             self._pending = True
 
-    def __deepcopy__(self, memo: dict) -> HandPush:
+    def fork(self, memo: dict) -> HandPush:
         """A fork's module: the same configuration on the copied core; its solver is made again when needed."""
         twin = copy.copy(self)
         memo[id(self)] = twin
         twin.bind_ports(None)
-        twin._param_values = dict(self._param_values)
         twin._link = copy.deepcopy(self._link, memo)
         twin._solver = None
         return twin

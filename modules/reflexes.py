@@ -42,8 +42,8 @@ class ContactKick(Module):
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
         for key in ("duration", "rest", "threshold"):
-            if not self._param_values[key] > 0:
-                raise fail(name, f"params.{key}", f"must be positive, got {self._param_values[key]!r}")
+            if not self.params[key] > 0:
+                raise fail(name, f"params.{key}", f"must be positive, got {self.params[key]!r}")
 
     def inputs(self) -> list[Port]:
         return [Port("force", (3,), "N", "foot force sensor")]
@@ -56,7 +56,7 @@ class ContactKick(Module):
         self._write(False)
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        p = self._param_values
+        p = self.params
         now = t_ns + dt_ns
         if self._mode == "ready" and float(np.linalg.norm(self.inp["force"])) >= p["threshold"]:
             self._mode, self._until, self._kicks = "kicking", now + round(p["duration"] * 1e9), self._kicks + 1
@@ -67,7 +67,7 @@ class ContactKick(Module):
         self._write(self._mode == "kicking")
 
     def _write(self, kicking: bool) -> None:
-        p = self._param_values
+        p = self.params
         self.out["hip"][...] = p["hip_offset"] if kicking else 0.0
         self.out["knee"][...] = p["knee_offset"] if kicking else 0.0
         self.out["kicks"][...] = self._kicks
@@ -105,7 +105,7 @@ class LegPump(Module):
         self.out["knee"][...] = 0.0
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        p = self._param_values
+        p = self.params
         goal = self.drive(float(self.inp["angle"]), float(self.inp["rate"]))
         reach = p["speed"] * dt_ns * 1e-9 / max(abs(p["hip_amplitude"]), abs(p["knee_amplitude"]), 1e-9)
         self._level += min(max(goal - self._level, -reach), reach)
@@ -132,8 +132,8 @@ class PhasePump(LegPump):
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
-        if not self._param_values["rate_scale"] > 0:
+        if not self.params["rate_scale"] > 0:
             raise fail(name, "params.rate_scale", "must be positive")
 
     def drive(self, angle: float, rate: float) -> float:
-        return math.tanh(rate / self._param_values["rate_scale"])
+        return math.tanh(rate / self.params["rate_scale"])

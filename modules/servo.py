@@ -90,10 +90,10 @@ class Servo(Module):
         explicit = all(not any(ch in t for ch in "*?[") for t in self.targets)
         self._joints: list[str] = list(self.targets) if explicit else []
         self._slides = [False] * len(self._joints)
-        self._check_gains(self._param_values)
+        self._check_gains(self.params)
         self._motion: Motion | None = None
         if self._joints:  # joints known now: check the program at construction
-            self._motion = self._parse(self._param_values)
+            self._motion = self._parse(self.params)
 
     @property
     def joints(self) -> list[str]:
@@ -153,7 +153,7 @@ class Servo(Module):
             self._slides = [int(m.jnt_type[link.lookup("joint", j)]) == slide for j in self._joints]
         elif not self._joints:
             raise fail(self.name, "targets", "without a physics core the servo needs its joints named in targets")
-        self._motion = self._parse(self._param_values)
+        self._motion = self._parse(self.params)
         self._pending: Motion | None = None
 
     def bind(self) -> None:
@@ -174,7 +174,7 @@ class Servo(Module):
         if self._pending is not None:
             self._begin(t_ns)
         pos, rate = self._motion.at(t_ns - self._t0)
-        if self._param_values is not self._gains_of:
+        if self.params is not self._gains_of:
             self._take_gains()
         kp, kd, high, low, lag = self._gains
         damp, target = self._damp, self._target
@@ -207,7 +207,7 @@ class Servo(Module):
         for servo in servos:
             if servo._pending is not None:
                 servo._begin(t_ns)
-            if servo._param_values is not servo._gains_of:
+            if servo.params is not servo._gains_of:
                 servo._take_gains()
         keys = [(_program_key(s._motion), s._t0) for s in servos]
         for servo, key in zip(servos, keys, strict=True):
@@ -243,7 +243,7 @@ class Servo(Module):
         """Cache the gains of the current parameter dict (copy-on-write: a new dict is a change), as
         vectors: a ufunc of two arrays costs less than one of an array and a Python float, and gives
         the same bits."""
-        p = self._gains_of = self._param_values
+        p = self._gains_of = self.params
         n = len(self._joints)
         self._gains = (np.full(n, p["kp"]), np.full(n, p["kd"]), np.full(n, p["tau_max"]), np.full(n, -p["tau_max"]),
                        p["lag"])
@@ -251,7 +251,7 @@ class Servo(Module):
     def _begin(self, t_ns: int) -> None:
         """Start the pending sequence now, from the current program target."""
         here, _ = self._motion.at(t_ns - self._t0)
-        p = self._param_values
+        p = self.params
         self._motion = parse_motion(here, p["sequence"], self._joints, self._slides, loop=p["loop"],
                                     interpolation=p["interpolation"])
         self._t0 = t_ns
@@ -270,7 +270,7 @@ class Servo(Module):
     def set_param(self, name: str, value: Any, *, running: bool = True) -> None:
         spec = self.param_specs().get(name)
         if spec is not None:  # refuse a bad value before it becomes the parameter's value
-            trial = dict(self._param_values)
+            trial = dict(self.params)
             trial[name] = spec.convert(value)
             self._check_gains(trial)
             if name == "sequence" and self._joints:

@@ -50,8 +50,8 @@ class Stabilizer(Module):
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
         for key in ("kp", "ki", "max_angle"):
-            if not self._param_values[key] >= 0:
-                raise fail(name, f"params.{key}", f"must be zero or positive, got {self._param_values[key]!r}")
+            if not self.params[key] >= 0:
+                raise fail(name, f"params.{key}", f"must be zero or positive, got {self.params[key]!r}")
 
     def inputs(self) -> list[Port]:
         return [Port("zmp", (3,), "m", "ZMP"), Port("center", (3,), "m", "centre of the support polygon")]
@@ -66,7 +66,7 @@ class Stabilizer(Module):
         self.out["roll"][...] = 0.0
 
     def step(self, t_ns: int, dt_ns: int) -> None:
-        p = self._param_values
+        p = self.params
         zmp, center = self.inp["zmp"], self.inp["center"]
         ix, iy = self._integral
         ex, ey = self._error

@@ -154,7 +154,7 @@ class ZmpSensor(Module):
         if link.core.mj is not link.seen:  # the core switched model: find the ids again
             link.changed()
             self._resolve()
-        p = self._param_values
+        p = self.params
         try:
             values = feet_support(self._sensordata[self._index].tolist(), self._nums, p["min_force"], p["min_margin"])
         except ContactOverflowError as exc:

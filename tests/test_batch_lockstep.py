@@ -108,10 +108,10 @@ class Kick(Module):
 
     def step(self, t_ns, dt_ns):
         self.count += 1
-        if self._param_values["fail_at"] and self.count >= self._param_values["fail_at"]:
+        if self.params["fail_at"] and self.count >= self.params["fail_at"]:
             raise RuntimeError(f"kick refused at count {self.count}")
         self.out["lean"][...] = 0.0
-        self.out["lean"][0] = 0.2 if self.count >= self._param_values["at"] else 0.0
+        self.out["lean"][0] = 0.2 if self.count >= self.params["at"] else 0.0
 
     def get_state(self):
         return self.count

@@ -73,7 +73,7 @@ def test_save_restore_is_bit_exact_across_edits_and_params(engine):
     after, after_params = core.get_state(), core.params
     tail = trajectory(core, out, 30)
     # back before every edit: the original structure and parameters, then replay
-    core._restore_params(dict(params))
+    core.restore_param_state(dict(params))
     core.set_state(saved)
     rest_inputs(inp)
     assert core.selection == tuple(core.objects())
@@ -81,9 +81,9 @@ def test_save_restore_is_bit_exact_across_edits_and_params(engine):
     core.set_state(saved)
     assert np.array_equal(edited_run(core, inp, out), first)
     # forward again into the edited structure
-    core._restore_params(dict(params))
+    core.restore_param_state(dict(params))
     core.set_state(saved)
-    core._restore_params(dict(after_params))
+    core.restore_param_state(dict(after_params))
     core.set_state(after)
     assert np.array_equal(trajectory(core, out, 30), tail)
 

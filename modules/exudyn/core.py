@@ -134,7 +134,7 @@ class ExudynCore(EditedCore):
 
     def __init__(self, name: str, scene: SceneSpec, *, scenario_dir: str | None = None, **params: Any):
         super().__init__(name, scene, **params)
-        for key, value in self._param_values.items():
+        for key, value in self.params.items():
             self._check_param(key, value)
         self._scenario_dir = scenario_dir
         self._period = DEFAULT_PERIOD_S
@@ -281,14 +281,13 @@ class ExudynCore(EditedCore):
     def close(self) -> None:
         self._cache.clear()
 
-    def __deepcopy__(self, memo: dict) -> ExudynCore:
+    def fork(self, memo: dict) -> ExudynCore:
         """An independent copy (`World.fork`): its own Exudyn system, built again from the same scene
         and edits (building is deterministic) and set to the same state; unbound."""
         twin = copy.copy(self)
         memo[id(self)] = twin
         twin.bind_ports(None)
         twin._unbind()
-        twin._param_values = dict(self._param_values)
         for attr in ("_bp", "_bq", "_bl", "_ba", "_jq", "_jqd"):
             setattr(twin, attr, getattr(self, attr).copy())
         twin._cache = OrderedDict()
@@ -314,7 +313,7 @@ class ExudynCore(EditedCore):
         return self._period / self._nsub
 
     def _substeps(self) -> int:
-        p = self._param_values
+        p = self.params
         if p["substeps"]:
             return int(p["substeps"])
         limit = float(p["max_step"])
@@ -325,7 +324,7 @@ class ExudynCore(EditedCore):
 
     def contact_settings(self) -> dict[str, float]:
         """The contact parameters in use: wn (rad/s), zeta, friction_zone (m/s), step (s)."""
-        p = self._param_values
+        p = self.params
         h = self._period / self._nsub
         g = float(np.linalg.norm(p["gravity"]))
         mu = max([float(p["friction"])] + [f or 0.0 for f, _e in self._own_materials(self._edits).values()])
@@ -338,7 +337,7 @@ class ExudynCore(EditedCore):
         """What `System.apply` takes, from the parameters (and the bodies' own materials)."""
         self._nsub = self._substeps()
         c = self.contact_settings()
-        p = self._param_values
+        p = self.params
         g = float(np.linalg.norm(p["gravity"]))
         own = {b: (f, None if e is None else zeta_for(float(e), c["step"], c["wn"], g, str(p["integrator"])))
                for b, (f, e) in self._own_materials(self._edits).items()}
@@ -472,7 +471,7 @@ class ExudynCore(EditedCore):
         if s is None:
             top = self._top_view(edits).top
             plan = make_plan(top, edits)
-            p = self._param_values
+            p = self.params
             options = Options(str(p["integrator"]), bool(p["verbose"]), bool(p["link_contacts"]))
             s = System(top, plan, key[0], start, options, settings, key[1])
         self._cache[key] = s

@@ -394,7 +394,7 @@ class MujocoCore(EditedCore):
 
     def __init__(self, name: str, scene: SceneSpec, *, scenario_dir: str | None = None, **params: Any):
         super().__init__(name, scene, **params)
-        for key, value in self._param_values.items():
+        for key, value in self.params.items():
             self._check_param(key, value)
         self._period = DEFAULT_PERIOD_S
         self._substeps_given = "substeps" in params  # else a model file's own timestep sets them (`setup`)
@@ -518,7 +518,7 @@ class MujocoCore(EditedCore):
                 substeps = mo.substeps_for(self._period, own)
             except ValueError as exc:
                 raise ms.fail(self.name, f"scene, field options: {exc}") from None
-            if substeps != self._param_values["substeps"]:
+            if substeps != self.params["substeps"]:
                 self.set_param("substeps", substeps, running=False)
         self._apply_params(self._compiled)
         mujoco.mj_forward(self._compiled.model, self._compiled.data)
@@ -610,7 +610,7 @@ class MujocoCore(EditedCore):
         self._cache.clear()
         self._view = None
 
-    def __deepcopy__(self, memo: dict) -> MujocoCore:
+    def fork(self, memo: dict) -> MujocoCore:
         """An independent copy (`fork`, `World.fork`), unbound, that copies only what changes: the
         MuJoCo data of the current structure. It shares what never changes: the spec source, the port
         layout, the index maps, and the compiled model until either core writes it (a run-time parameter
@@ -641,7 +641,7 @@ class MujocoCore(EditedCore):
         core writes a model: it makes it the structure's own first (a fork may share it), and does
         nothing when the model holds these very values already (the same parameter dict and period:
         dicts are never changed in place)."""
-        p = self._param_values
+        p = self.params
         self._nsub = int(p["substeps"])
         materials = self._edits.materials
         if (s.applied is not None and s.applied[0] is p and s.applied[1] == self._period

@@ -412,11 +412,11 @@ class IsolatedFMUModule(FMUModuleBase):
         """The child's process id (None while no process runs)."""
         return self._child.proc.pid if self._child is not None else None
 
-    def __deepcopy__(self, memo: dict[int, Any]) -> IsolatedFMUModule:
+    def fork(self, memo: dict[int, Any]) -> IsolatedFMUModule:
         """A fork: a new process, initialized and set to this module's state."""
         clone = IsolatedFMUModule(self.name, self.info, source=self.source, targets=self.targets,
                                   call_timeout=self.call_timeout, start_time=self.start_time)
-        clone._param_values = self._param_values
+        clone.adopt_param_state(self.param_state())
         clone._t0_ns, clone._started, clone._period_ns = self._t0_ns, self._started, self._period_ns
         memo[id(self)] = clone
         if self._child is None and self._pending is None:

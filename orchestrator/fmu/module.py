@@ -372,10 +372,10 @@ class FMUModule(FMUModuleBase):
         if session is not None:
             session.close()
 
-    def __deepcopy__(self, memo: dict[int, Any]) -> FMUModule:
+    def fork(self, memo: dict[int, Any]) -> FMUModule:
         """A fork: a new instance of the FMU in the same state (through its serialized state)."""
         clone = FMUModule(self.name, self.info, source=self.source, targets=self.targets, start_time=self.start_time)
-        clone._param_values = self._param_values
+        clone.adopt_param_state(self.param_state())
         memo[id(self)] = clone
         if self._session is None:
             return clone

@@ -29,13 +29,13 @@ Lifecycle (the order the world calls a module in; `check_module` verifies it)::
     m.close()                          # 8. once, when the world closes (a removed module stays alive
                                        #    while history may bring it back)
 
-Fork: `World.fork` unbinds every module (``bind_ports(None)``), deep-copies them with one shared
-memo (so a sensor holding the core gets the copied core), binds the originals again and binds the
-copies to the new world. The copies share their originals' parameter dicts (a parameter change
-replaces a module's dict, never edits it, as history relies on too). A module holding foreign
-resources (an engine handle, an FMU instance) defines ``__deepcopy__`` to copy them properly (its
-copy unbound), or declares ``can_fork=False``; one holding what never changes (a compiled model, a
-table) may share it with its copy rather than copy it.
+Fork: `World.fork` unbinds every module (``bind_ports(None)``), asks each for its copy (`Module.fork`,
+with one shared memo, so a sensor holding the core gets the copied core), binds the originals again
+and binds the copies to the new world. The copies share their originals' parameter values
+(`ParamValues`: a change replaces them, never edits them, as history relies on too). A module holding
+foreign resources (an engine handle, an FMU instance) overrides `fork` to copy them properly, or
+declares ``can_fork=False``; one holding what never changes (a compiled model, a table) may share it
+with its copy rather than copy it.
 
 Optional hooks are methods of this class with a documented default (`scenario_spec`,
 `steps_change_state`, ...; a physics core has more, see `PhysicsCore`): the kernel calls them
@@ -52,9 +52,9 @@ must copy what it keeps. Randomness comes from `ctx.rng` and its state belongs i
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
-import types
 from abc import ABCMeta
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -63,12 +63,36 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 import numpy as np
 
 from .errors import DynabrainError, UnitError
+from .portable import state_type
 from .suggest import did_you_mean
 from .units import parse_quantity
 
 if TYPE_CHECKING:
     from .core import PhysicsCore
     from .structure import Copies
+
+
+@state_type
+class ParamValues(dict):
+    """A module's parameter values (`Module.params`): a dict that cannot be changed. A change makes a
+    new one (`Module.set_param`), so history, forks and the module's own caches may keep and share it,
+    and may tell a change by identity (``params is not kept``). Lookups cost what a dict's cost."""
+
+    __slots__ = ()
+
+    def _refuse(self, *_args: Any, **_kw: Any) -> None:
+        raise TypeError("a module's parameters are read-only here; change one with World.set (module.param)")
+
+    __setitem__ = __delitem__ = clear = pop = popitem = setdefault = update = __ior__ = _refuse  # type: ignore
+
+    def __reduce__(self) -> tuple:
+        return ParamValues, (dict(self),)
+
+    def __copy__(self) -> ParamValues:
+        return self
+
+    def __deepcopy__(self, memo: dict[int, Any]) -> ParamValues:
+        return self  # never changed in place: a copy is the same values
 
 
 NO_PORTS = np.zeros(0)  # what `Module.inp_flat` and `out_flat` are while a module is not bound
@@ -252,7 +276,7 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
             raise DynabrainError(f"module name {name!r} must be a non-empty string without dots")
         self.name = name
         self.targets: tuple[str, ...] = tuple(targets)
-        self._param_values: dict[str, Any] = self._resolve_params(params)
+        self._param_values = ParamValues(self._resolve_params(params))
         self._param_version = 0
         self._binding: PortBinding | None = None
         self.inp: Mapping[str, np.ndarray] = {}
@@ -313,9 +337,10 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
         return values
 
     @property
-    def params(self) -> Mapping[str, Any]:
-        """Current parameter values (read-only; change them through `World.set`)."""
-        return types.MappingProxyType(self._param_values)
+    def params(self) -> ParamValues:
+        """Current parameter values (read-only; change them through `World.set`). A change replaces them:
+        a module may keep the values it derived something from and compare by identity."""
+        return self._param_values
 
     @property
     def param_version(self) -> int:
@@ -340,21 +365,47 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
         if running and not spec.runtime:
             raise DynabrainError(f"parameter {self.name}.{name} cannot be changed at run time")
         converted = spec.convert(value)
-        updated = dict(self._param_values)  # copy-on-write: history keeps the old dict
-        updated[name] = converted
-        self._param_values = updated
+        self._param_values = ParamValues({**self._param_values, name: converted})  # history keeps the old
         self._params_changed()
         self.on_param(name, converted)
 
-    def _restore_params(self, values: dict[str, Any]) -> None:
+    def param_state(self) -> ParamValues:
+        """The parameters as part of the module's state: history keeps them with each state (shared
+        while they do not change) and `restore_param_state` brings them back."""
+        return self._param_values
+
+    def restore_param_state(self, values: Mapping[str, Any]) -> None:
+        """Make ``values`` (from `param_state`, now or from an exported state) the parameters again; each
+        that differs is told to `on_param`, as a change is."""
         if values is self._param_values:
             return
         old = self._param_values
-        self._param_values = values
+        self._param_values = values if isinstance(values, ParamValues) else ParamValues(values)
         self._params_changed()
-        for key, value in values.items():
+        for key, value in self._param_values.items():
             if old.get(key) is not value:
                 self.on_param(key, value)
+
+    def adopt_param_state(self, values: Mapping[str, Any]) -> None:
+        """Take ``values`` as this module's parameters without telling it (a copy of a module made with
+        these same values: its fork)."""
+        self._param_values = values if isinstance(values, ParamValues) else ParamValues(values)
+
+    # -- fork -----------------------------------------------------------------------------------
+    def fork(self, memo: dict[int, Any]) -> Module:
+        """A copy of this module in its current state, for a forked world (`World.fork`): unbound (the
+        world unbinds it first), sharing the parameter values. ``memo`` holds the copies made so far
+        (Python's deepcopy memo): a module holding another gets that one's copy. The default copies
+        every attribute by Python's deepcopy protocol (``__getstate__`` included). A module holding
+        foreign resources (an engine's data, an FMU instance, a GL context) overrides it, without
+        calling it, and is then copied by its own `fork` wherever it is copied, also as an attribute of
+        another module (`__init_subclass__` makes it the class's ``__deepcopy__``)."""
+        return copy.deepcopy(self, memo)
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "fork" in vars(cls):
+            cls.__deepcopy__ = cls.fork  # type: ignore[attr-defined]
 
     # -- the contract ---------------------------------------------------------------------------
     # (the hooks that do nothing by default are so on purpose, not abstract: noqa B027)

@@ -8,7 +8,6 @@ to a tick between keyframes applies the keyframe before it and steps the ticks a
 
 from __future__ import annotations
 
-import copy
 import itertools
 from collections.abc import Sequence
 from typing import Any
@@ -46,7 +45,7 @@ class Timeline:
         steps leave it alone (`Module.steps_change_state`: saved now, then shared), and a call to
         ``get_state`` for the others; and ``ctx.record``, which pushes such a state after a tick."""
         ctx = self.ctx
-        ctx.params = tuple([rec.module._param_values for rec in structure.records])
+        ctx.params = tuple([rec.module.param_state() for rec in structure.records])
         entries: list[tuple[bool, Any]] = []
         for rec, how in zip(structure.records, structure.saves, strict=True):
             module = rec.module
@@ -72,7 +71,7 @@ class Timeline:
         np.copyto(ctx.buf, state.bus)
         for rec, saved, params in zip(state.structure.records, state.states, state.params, strict=True):
             if saved is not UNRESTORABLE:
-                rec.module._restore_params(params)
+                rec.module.restore_param_state(params)
                 rec.module.set_state(saved)
         ctx.tick = state.tick
         ctx.saver_of = None  # the states kept as they were may have been restored to others
@@ -163,16 +162,12 @@ class Timeline:
         if refused:
             raise ForkError(f"fork refused: module(s) {', '.join(refused)} cannot fork")
         memo: dict[int, Any] = {}
-        bindings = {}  # modules are copied unbound (their copies are bound to the new world's bus)
-        for rec in records:
-            bindings[rec.name] = rec.module.bind_ports(None)
-            # shared, not copied: a parameter dict is replaced on a change, never changed in place
-            # (history's states share it the same way)
-            memo[id(rec.module._param_values)] = rec.module._param_values
+        bindings = {rec.name: rec.module.bind_ports(None) for rec in records}  # copied unbound (`Module.fork`)
         clones: dict[str, Module] = {}
         try:
             for rec in records:
-                clones[rec.name] = copy.deepcopy(rec.module, memo)
+                clone = memo.get(id(rec.module))  # (a module another one holds is copied with it)
+                clones[rec.name] = clone if clone is not None else rec.module.fork(memo)
         except BaseException:
             for clone in clones.values():  # free what was copied (FMU instances, processes)
                 close_quietly(clone)

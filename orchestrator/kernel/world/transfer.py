@@ -62,7 +62,7 @@ class StateTransfer:
     def import_(self, data: bytes) -> None:
         ps = self.decode(data)
         structure = self._structure_for(ps)
-        params = tuple(same_params(rec.module._param_values, values)
+        params = tuple(same_params(rec.module.param_state(), values)
                        for rec, values in zip(structure.records, ps.params, strict=True))
         state = WorldState(self.ctx.id, ps.tick, structure, ps.bus, ps.states, params)
         self.timeline.restore(state, snapshot=0, imported=True)
