@@ -144,8 +144,8 @@ class History:
     between hold only their number, or (`Written`) the inputs written at them before their step, and
     `restore_point` gives the keyframe before a tick, how many ticks the world steps again from it to
     reach that tick (`World.backtick`) and the inputs to write again on the way. It trades the cost of
-    a state each tick for up to k - 1 ticks stepped again at each backtick (see the README, "History
-    with keyframes")."""
+    a state each tick for up to k - 1 ticks stepped again at each backtick (see docs/concepts.md,
+    "History with keyframes")."""
 
     def __init__(self, depth: int, budget: int | None = None, every: int = 1):
         if depth < 0:

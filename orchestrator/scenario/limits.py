@@ -1,6 +1,6 @@
 """The limits a scenario's values are held to: each value outside them is refused before t=0, with
-its file:line, instead of failing (or running away) during the run. The README's "Scenario files"
-section lists them. Every number must be finite (NaN and infinity are refused everywhere); the
+its file:line, instead of failing (or running away) during the run. ``docs/scenarios.md`` lists
+them. Every number must be finite (NaN and infinity are refused everywhere); the
 constants below bound them further, in SI units. The pydantic field types at the end (`Duration`,
 `PositiveDuration`, `Name`, `Realtime`) apply them where the scenario's shape is checked.
 """

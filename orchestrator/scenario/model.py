@@ -1,8 +1,8 @@
 """Scenario files: YAML in, a validated World out.
 
 Validation happens before t=0 and collects every problem (file, line, field, and the closest valid
-name for a misspelt one) into one `ScenarioError`. See ``scenarios/`` for examples and the README
-for the full shape.
+name for a misspelt one) into one `ScenarioError`. See ``scenarios/`` for examples and
+``docs/scenarios.md`` for the full shape.
 """
 
 from __future__ import annotations
