@@ -271,7 +271,8 @@ class History:
             raise RollbackError(f"backtick({n}): n must be >= 0")
         if n > self.available:
             raise RollbackError(f"backtick({n}) goes beyond the history: only {self.available} ticks are kept "
-                                f"(history depth {self.depth}; raise `world.history` in the scenario)")
+                                f"(history depth {self.depth}: raise it with World(history=...) in Python, "
+                                "world: {history: ...} in a scenario)")
 
     def drop_newest(self, n: int) -> None:
         for _ in range(n):
