@@ -27,10 +27,16 @@ connections) at the same tick; branches that start from states of other structur
 inside a branch) are stepped in a lockstep group of their own, and a branch whose ticks run into one
 of the world's scheduled events is run alone by `run_branch` (events are not stepped in lockstep);
 `notes` says so for each batch (`BatchResult.notes`).
+
+The MuJoCo cores' physics is MuJoCo's C on threads, or MJWarp with ``physics="mjwarp"`` (or
+``DYNABRAIN_LOCKSTEP_PHYSICS=mjwarp``: `modules.mujoco.warp_batch`, on warp's CPU device unless told
+otherwise; close to C, not bit for bit: a branch run again alone runs on C).
 """
 
 from __future__ import annotations
 
+import functools
+import importlib
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -46,6 +52,17 @@ from ..kernel.world import World
 from .branch import BranchOutcome, BranchStatus, BranchTask, run_branch
 
 _EACH = Module.step_batch.__func__  # type: ignore[attr-defined]  # the default: each member alone
+PHYSICS = {"threads": None, "mjwarp": "dynabrain.modules.mujoco.warp_batch"}
+"""The physics a lockstep batch may step its MuJoCo cores with: by name, the module (resolved when asked,
+so the brain imports no shipped module) whose ``handles(cls)`` and ``step_batch(cls, ...)`` replace a
+core class's own batched step; None: the class's own (MuJoCo's C on threads)."""
+
+
+def _physics(name: str | None) -> Any:
+    name = name or os.environ.get("DYNABRAIN_LOCKSTEP_PHYSICS", "").strip() or "threads"
+    if name not in PHYSICS:
+        raise DynabrainError(f"batch backend 'lockstep': no physics {name!r} (one of {', '.join(PHYSICS)})")
+    return importlib.import_module(PHYSICS[name]) if PHYSICS[name] else None
 
 
 @dataclass
@@ -64,8 +81,9 @@ class LockstepBackend:
     says (default: every core); the physics threads are the MuJoCo core's (`modules.mujoco.batched.workers`:
     every core, or ``DYNABRAIN_LOCKSTEP_THREADS``)."""
 
-    def __init__(self, world: World, workers: int | None = None):
+    def __init__(self, world: World, workers: int | None = None, physics: str | None = None):
         self.world = world
+        self.physics = _physics(physics)  # see `PHYSICS`
         self.size = workers or os.cpu_count() or 1
         self._scratch: World | None = None
         self._forks: list[World] = []
@@ -154,7 +172,7 @@ class LockstepBackend:
             ro = _read_only(bus)
             kept = [pair for row, b in enumerate(group) for pair in _bind(b, bus[row], ro[row])]
             try:
-                return _Lockstep(group, self.world.dt_ns, bus, ro).run()
+                return _Lockstep(group, self.world.dt_ns, bus, ro, self.physics).run()
             finally:
                 _give_back(kept)
         if self._layout is not layout or self._bus is None or len(self._bus) < len(self._forks):
@@ -166,7 +184,7 @@ class LockstepBackend:
             if b.fork not in self._kept:
                 self._kept[b.fork] = _bind(b, self._bus[b.fork], self._ro[b.fork])
         lo, hi = forks[0], forks[-1] + 1
-        return _Lockstep(group, self.world.dt_ns, self._bus[lo:hi], self._ro[lo:hi]).run()
+        return _Lockstep(group, self.world.dt_ns, self._bus[lo:hi], self._ro[lo:hi], self.physics).run()
 
     def _own(self, fork: int) -> None:
         """Give fork ``fork``'s modules back the bindings of its world (before it imports or runs alone)."""
@@ -260,10 +278,10 @@ class _Entry:
 class _Lockstep:
     """One group of branches stepped together (see the module docstring)."""
 
-    def __init__(self, branches: list[_Branch], dt_ns: int, bus: np.ndarray, ro: np.ndarray):
+    def __init__(self, branches: list[_Branch], dt_ns: int, bus: np.ndarray, ro: np.ndarray, physics: Any = None):
         """``bus``: the group's stacked bus (row k: branch k's, its modules bound to it), ``ro`` the same
-        read-only."""
-        self.branches, self.dt_ns = branches, dt_ns
+        read-only; ``physics``: see `PHYSICS`."""
+        self.branches, self.dt_ns, self.physics = branches, dt_ns, physics
         self.structure = branches[0].start.structure
         self.bus, self.ro = bus, ro
         for row, branch in enumerate(branches):
@@ -279,8 +297,12 @@ class _Lockstep:
             rec = self.structure.records[self._record_index(entry.name)]
             ports = ", ".join(f"{p.name} {p.shape}" for p in rec.outputs if p.view_of is None)
             assert all(b.start.structure.dispatch[i].name == entry.name for b in self.branches)
+            step_batch = cls.step_batch
+            if self.physics is not None and self.physics.handles(cls):
+                step_batch = functools.partial(self.physics.step_batch, cls)
             out.append(_Entry(entry.name, entry.period_ns, entry.period_ticks, entry.phase, entry.copies,
-                              entry.gather, members, cls.step_batch, cls.step_batch.__func__ is not _EACH,
+                              entry.gather, members, step_batch, step_batch is not cls.step_batch
+                              or cls.step_batch.__func__ is not _EACH,
                               slots.inputs_flat or slice(0, 0), slots.outputs_flat or slice(0, 0), ports))
         return out
 

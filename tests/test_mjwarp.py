@@ -1,0 +1,138 @@
+"""The MJWarp physics (issue 25, item 2: `modules.mujoco.warp_batch`) on warp's CPU device, against MuJoCo's
+C: a small model's worlds stepped together on warp stay within `warp_batch.TOLERANCE` of C, run to run
+they are bit equal, and a lockstep batch of the two cubes with ``physics="mjwarp"`` follows the batch on
+C within the same tolerance. Skipped, with warp's reason, where warp is not installed or cannot start.
+
+Warp compiles its kernels on first use (about 20 s on two cores, in warp's kernel cache after: see
+`warp_batch.cache_dir`); the module's fixtures pay it once."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from dynabrain.modules.mujoco import warp_batch
+from dynabrain.orchestrator import Batch, DynabrainError, load_world
+from dynabrain.orchestrator.brain.lockstep import LockstepBackend
+
+ROOT = Path(__file__).resolve().parents[1]
+WORLDS, STEPS = 3, 200
+MODEL = """<mujoco><option timestep="0.002"/>
+<worldbody>
+  <geom type="plane" size="2 2 .1"/>
+  <body name="box" pos="0 0 .3"><freejoint/><geom type="box" size=".05 .05 .05" mass="1"/></body>
+  <body name="upper" pos="0.5 0 1">
+    <joint name="shoulder" type="hinge" axis="0 1 0" damping="0.01"/>
+    <geom type="capsule" fromto="0 0 0 0 0 -.4" size=".02"/>
+    <body pos="0 0 -.4">
+      <joint name="elbow" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -.3" size=".02"/>
+    </body>
+  </body>
+</worldbody>
+<actuator><motor joint="shoulder" gear="1"/></actuator>
+</mujoco>"""
+"""A box that falls onto the floor (contacts, the solver) and a double pendulum driven by a motor."""
+
+pytestmark = pytest.mark.skipif(warp_batch.unavailable() is not None,
+                                reason=f"MJWarp cannot run here: {warp_batch.unavailable()}")
+
+
+def starts(model: mujoco.MjModel) -> list[mujoco.MjData]:
+    """One data per world, each from its own start (drop height, pendulum swing)."""
+    datas = []
+    for k in range(WORLDS):
+        d = mujoco.MjData(model)
+        d.qpos[2] += 0.05 * k
+        d.qvel[6] = 0.5 * k
+        mujoco.mj_forward(model, d)
+        datas.append(d)
+    return datas
+
+
+def control(step: int, world: int) -> float:
+    return 0.2 * np.sin(0.05 * step + world)
+
+
+def on_warp(worlds: warp_batch.WarpWorlds, model: mujoco.MjModel) -> list[mujoco.MjData]:
+    datas = starts(model)
+    for step in range(STEPS):
+        for k, d in enumerate(datas):
+            d.ctrl[0] = control(step, k)
+        worlds.put(datas)
+        worlds.step()
+        worlds.take(datas)
+    return datas
+
+
+@pytest.fixture(scope="module")
+def small():
+    """The small model and its warp worlds, stepped once (warp compiles its kernels here)."""
+    model = mujoco.MjModel.from_xml_string(MODEL)
+    try:
+        worlds = warp_batch.WarpWorlds(model, WORLDS)
+        worlds.put(starts(model))
+        worlds.step()
+    except Exception as exc:  # warp starts but cannot compile or run its kernels here
+        pytest.skip(f"MJWarp cannot compile or step on the CPU device here: {exc}")
+    return model, worlds
+
+
+def test_warp_follows_mujoco_c_within_the_tolerance(small):
+    model, worlds = small
+    warp = on_warp(worlds, model)
+    c = starts(model)
+    for step in range(STEPS):
+        for k, d in enumerate(c):
+            d.ctrl[0] = control(step, k)
+            mujoco.mj_step(model, d)
+    for k, (w, d) in enumerate(zip(warp, c, strict=True)):
+        assert np.abs(w.qpos - d.qpos).max() <= warp_batch.TOLERANCE["qpos_m"], k
+        assert np.abs(w.qvel - d.qvel).max() <= warp_batch.TOLERANCE["qvel_m_s"], k
+        assert w.time == d.time, k
+    assert 0.04 < warp[0].qpos[2] < 0.06  # the box came to rest on the floor (half its size up)
+
+
+def test_warp_is_deterministic_run_to_run_on_the_cpu(small):
+    model, worlds = small
+    first, second = on_warp(worlds, model), on_warp(worlds, model)
+    for a, b in zip(first, second, strict=True):
+        assert a.qpos.tobytes() == b.qpos.tobytes() and a.qvel.tobytes() == b.qvel.tobytes()
+
+
+def test_a_lockstep_batch_on_mjwarp_follows_the_batch_on_c(small, monkeypatch):
+    """The two cubes (contacts between boxes and with the floor), three branches from two starts."""
+    world = load_world(ROOT / "scenarios" / "two_cubes.yaml")
+    try:
+        first = world.export_state()
+        world.tick(40)
+        second = world.export_state()
+        branch_starts = [first, second, first]
+        record = ("core.aa.pos", "core.bb.pos")
+        with Batch(world, backend="lockstep") as batch:
+            on_c = batch.run(200, starts=branch_starts, record=record)
+        monkeypatch.setenv("DYNABRAIN_LOCKSTEP_PHYSICS", "mjwarp")
+        before = warp_batch.STEPPED["warp"]
+        with Batch(world, backend="lockstep") as batch:
+            on_warp_ = batch.run(200, starts=branch_starts, record=record)
+        assert warp_batch.STEPPED["warp"] - before == 3 * 200  # every branch's every tick on warp
+        assert not any("failed" in note for note in on_warp_.notes), on_warp_.notes
+        for b in range(3):
+            assert on_warp_.status[b].ok, on_warp_.status[b]
+            for name in record:
+                gap = np.abs(on_warp_.branch(name, b) - on_c.branch(name, b)).max()
+                assert 0 < gap <= warp_batch.TOLERANCE["qpos_m"], (b, name, gap)
+    finally:
+        world.close()
+
+
+def test_an_unknown_physics_is_refused_by_name():
+    world = load_world(ROOT / "scenarios" / "two_cubes.yaml")
+    try:
+        with pytest.raises(DynabrainError, match=r"no physics 'bullet'.*mjwarp"):
+            LockstepBackend(world, physics="bullet")
+    finally:
+        world.close()
