@@ -461,6 +461,8 @@ class BrainClient:
         return self._subscribe(p.key(self.world, "state"), on_sample)
 
     def subscribe_events(self, callback: Callable[[dict[str, Any]], None]) -> Any:
+        """The world's events as dicts (``tick``, ``kind``, ``detail``, ``source``); an edit's is its typed
+        record again by ``dynabrain.orchestrator.kernel.edits.edit_of(event["kind"], event["detail"])``."""
         return self._subscribe(p.key(self.world, "events"),
                                lambda s: callback(json.loads(payload_bytes(s.payload))))
 

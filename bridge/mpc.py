@@ -11,6 +11,7 @@ for a world (or a robot's twin) served elsewhere with the server's cores.
     client = BrainClient("swing_mpc", connect="tcp/127.0.0.1:7447")
     mpc = RemoteMpc(client, controls, cost, record=[...], horizon="1s", samples=32)
     mpc.run(duration="4s", every="100ms")          # in step: replan, tick 100 ms, replan...
+    mpc.start(every="100ms"); ...; mpc.stop()       # or while the served world runs in real time
 
 What stays local: the imagined future each replan chose (``mpc.futures``: the plan's start tick and its
 recorded signals); the served world's own log has the plans, as parameter edits.
@@ -133,6 +134,11 @@ class RemoteMpc(Mpc):
             now += n
         return self.stats
 
-    def start(self, world: Any = None, *, every: int | float | str = "100ms") -> None:
-        raise MpcError("mpc: over the bridge, run in step (run); a served world ticking in real time takes the "
-                       "plans of a controller in its own process")
+    # -- while the served world runs (`Mpc.start`: the same loop, over the bridge) -------------------------
+    POLL_S = 0.02  # (each look is a status call)
+
+    def _running(self) -> bool:
+        return bool(self.world.status()["server"]["loop"]["running"])
+
+    def _tick_of(self, state: Any) -> int:
+        return int(state.tick)

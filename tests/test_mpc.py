@@ -7,6 +7,7 @@ bad controls are refused before anything runs."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -174,3 +175,24 @@ def test_futures_hold_what_the_brain_assumes_of_inputs_it_does_not_control(seate
         Mpc(seated, legs(), swing_energy, backend="serial", assume={"servo.l_elbow.q_ref": [0.0, 0.0]})
     with pytest.raises(MpcError, match=r"assume: 'servo.kp' is a parameter"):
         Mpc(seated, legs(), swing_energy, backend="serial", assume={"servo.kp": 1.0})
+
+
+def test_remote_mpc_replans_while_the_served_world_runs_in_real_time():
+    from dynabrain.bridge.mpc import RemoteMpc
+    from dynabrain.bridge.testing import serving
+
+    world = load_world(SWING)
+    with serving(world, "swing_mpc") as (server, brain):
+        brain.acquire()
+        mpc = RemoteMpc(brain, legs(), swing_energy, record=PIVOT, horizon="0.1s", knots=2, samples=2,
+                        method="sampling")
+        mpc.start(every="100ms")  # starts the served loop at real time
+        deadline = time.monotonic() + 30
+        while mpc.stats.replans < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        stats = mpc.stop()
+        brain.stop()
+        assert stats.replans >= 3 and "mpc" in server.world.modules
+        ticks = [tick for tick, _ in mpc.futures]  # where each plan takes over: its state's tick and its delay
+        assert len(set(ticks)) == len(ticks) and min(ticks[1:]) > ticks[0]  # from later states of the running world
+        assert stats.ticks == 0 and server.world.tick_count > ticks[0]  # the world ran by itself, in real time

@@ -152,6 +152,9 @@ class Mpc:
     worst ``cvar`` fraction); ``batch`` or ``backend``: where the futures run; ``player``: the name of
     the module that plays the plan; ``seed``: the sampler's generator."""
 
+    POLL_S = 0.005
+    """How often `start`'s planner looks whether the world has gone far enough for the next replan."""
+
     def __init__(self, world: World, controls: Mapping[str, Control], cost: Callable[[Futures], Any], *,
                  record: Sequence[str] = (), horizon: int | float | str = "1s", knots: int = 4, samples: int = 32,
                  method: str = "mppi", iterations: int = 1, elite: float = 0.25, temperature: float = 0.1,
@@ -198,6 +201,13 @@ class Mpc:
 
     def _make_batch(self, backend: str) -> Any:
         return Batch(self.world, backend=backend)
+
+    def _running(self) -> bool:
+        """Whether the world's loop runs (`World.start`)."""
+        return self.world.running
+
+    def _tick_of(self, state: Any) -> int:
+        return _state_tick(state)
 
     def _latest(self) -> tuple[Any, int]:
         """The world's latest state (what `_futures` starts from) and its tick."""
@@ -335,7 +345,7 @@ class Mpc:
         ``prefix`` (the rows the world will play meanwhile; default the current plan's), then the
         samples. Updates the controller's plan (not the world's: see `apply`)."""
         t0 = time.perf_counter()
-        state, tick = self._latest() if state is None else (state, _state_tick(state))
+        state, tick = self._latest() if state is None else (state, self._tick_of(state))
         if delay_ticks > 0 and prefix is None:
             prefix = self.rows_from(tick, delay_ticks)
         prefix = np.zeros((0, len(self.channels))) if prefix is None else np.asarray(prefix, dtype=np.float64)
@@ -493,24 +503,23 @@ class Mpc:
         each = _ticks(self.dt, every, "every")
         self._stop.clear()
         self._error = None
-        if not w.running:
+        if not self._running():
             w.start(realtime=True)
         self._thread = threading.Thread(target=self._loop, args=(each,), name=f"mpc {self.name}", daemon=True)
         self._thread.start()
 
     def _loop(self, each: int) -> None:
-        w = self.world
         delay = each
+        poll_s = min(self.POLL_S, each * self.dt / 4)
         try:
-            while not self._stop.is_set() and w.running:
-                with w.lock():
-                    state, tick = w.export_state(), w.tick_count
+            while not self._stop.is_set() and self._running():
+                state, tick = self._latest()
                 plan = self.replan(state, delay_ticks=delay)
                 self.apply(plan)
                 took = max(1, math.ceil(plan.wall_s / self.dt))
                 delay = took  # the next plan starts where the world will be when it is ready
-                while not self._stop.is_set() and w.running and w.tick_count < tick + max(each, took):
-                    time.sleep(min(0.005, each * self.dt / 4))
+                while not self._stop.is_set() and self._running() and self._now() < tick + max(each, took):
+                    time.sleep(poll_s)
         except BaseException as exc:  # reported by stop()
             self._error = exc
 
