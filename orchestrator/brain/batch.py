@@ -41,8 +41,9 @@ Backends, one API:
   world, per-branch starts, parameters and inputs (`lockstep.LockstepBackend`);
 - ``ray``: the same workers as Ray actors, on a local Ray or a cluster (``address=``), for a brain
   that outgrows one machine (``pip install 'dynabrain[ray]'``);
-- ``auto``: ``processes`` when the machine has more than one core and the world can be rebuilt,
-  else ``serial``.
+- ``auto``: on a machine with more than one core, ``processes`` when the world can be rebuilt (the
+  fastest for a robot with its modules: ``bench/predict.py``), else ``lockstep`` (a world built in
+  Python: its physics still on every core); ``serial`` on one core.
 
 Nothing of the world changes during a batch: it is only read (its state exported) when a run starts
 or is submitted. Every name, shape and count is checked before anything runs. Batches run one after
@@ -154,7 +155,8 @@ class Batch:
         self.world = world
         self.build = build if build is not None else world.rebuild
         if backend == "auto":
-            backend = "processes" if (os.cpu_count() or 1) > 1 and self.build is not None else "serial"
+            many = (os.cpu_count() or 1) > 1
+            backend = ("processes" if self.build is not None else "lockstep") if many else "serial"
         if backend in ("processes", "ray") and self.build is None:
             raise DynabrainError(f"batch backend {backend!r} builds a copy of the world in each worker: make the "
                                  "world with load_world (it knows how), or pass build=<a picklable call>")
