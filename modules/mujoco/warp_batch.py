@@ -46,13 +46,14 @@ from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDiverged
 
 from . import batched
 
-TOLERANCE = {"qpos_m": 1e-4, "qvel_m_s": 1e-3}
-"""The largest gap `tests/test_mjwarp.py` accepts between warp (CPU device) and MuJoCo's C over 200 ticks
-of 2 ms (0.4 s, first contacts included): its small model (a box dropped onto the floor, a double
-pendulum driven by a motor) and the two cubes. Measured: at most 3e-7 m and 4e-6 m/s on the small
-model, 3e-6 m on the two cubes, from warp's float32 and its solver's own order of sums. Over longer
-runs a chaotic contact (a box sliding off another's corner) grows the gap like any change of rounding:
-decimetres after 5 s of the two cubes. See bench/README.md."""
+TOLERANCE = {"qpos_m": 1e-3, "qvel_m_s": 1e-2}
+"""The largest gap accepted between warp (CPU device) and MuJoCo's C over runs of up to a second of 2 ms
+ticks, contacts included (`tests/test_mjwarp.py` checks it over 200 ticks). Measured: at most 3e-7 m and
+4e-6 m/s on the test's small model (a box dropped onto the floor, a double pendulum driven by a motor),
+3e-6 m on the two cubes, 2e-4 m on the humanoid's pelvis with its servos over 500 ticks
+(bench/mjwarp.py): warp's float32 and its solver's own order of sums. Over longer runs a chaotic contact
+(a box sliding off another's corner) grows the gap like any change of rounding: decimetres after 5 s of
+the two cubes. See bench/README.md."""
 
 _IN = ("qpos", "qvel", "act", "ctrl", "qfrc_applied", "xfrc_applied", "mocap_pos", "mocap_quat", "qacc_warmstart")
 """The fields of an MjData that make a world's next step (besides time)."""
