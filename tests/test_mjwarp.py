@@ -1,10 +1,13 @@
 """The MJWarp physics (issue 25, item 2: `modules.mujoco.warp_batch`) on warp's CPU device, against MuJoCo's
 C: a small model's worlds stepped together on warp stay within `warp_batch.TOLERANCE` of C, run to run
-they are bit equal, and a lockstep batch of the two cubes with ``physics="mjwarp"`` follows the batch on
-C within the same tolerance. Skipped, with warp's reason, where warp is not installed or cannot start.
+they are bit equal, a world that diverges fails alone, a lockstep batch of the two cubes with
+``physics="mjwarp"`` follows the batch on C within the same tolerance, and a branch whose parameters
+made a model of its own steps on C. Skipped, with warp's reason, where warp is not installed or cannot
+start or compile.
 
-Warp compiles its kernels on first use (about 20 s on two cores, in warp's kernel cache after: see
-`warp_batch.cache_dir`); the module's fixtures pay it once."""
+Warp compiles its kernels on first use (cold, on two cores: about 18 s for the small model and 13 s more
+for the two cubes; then read from warp's kernel cache, `warp_batch.cache_dir`: the file runs in about
+8 s); the module's fixture pays it once."""
 
 from __future__ import annotations
 
@@ -125,6 +128,45 @@ def test_a_lockstep_batch_on_mjwarp_follows_the_batch_on_c(small, monkeypatch):
             for name in record:
                 gap = np.abs(on_warp_.branch(name, b) - on_c.branch(name, b)).max()
                 assert 0 < gap <= warp_batch.TOLERANCE["qpos_m"], (b, name, gap)
+    finally:
+        world.close()
+
+
+def test_a_world_that_diverges_fails_alone(small):
+    """A world thrown at an absurd speed is not finite after the step; its neighbours step as without it."""
+    model, worlds = small
+    datas = starts(model)
+    datas[1].qvel[7] = 1e30
+    worlds.put(datas)
+    for _ in range(5):
+        worlds.step()
+    assert worlds.take(datas).tolist() == [True, False, True]
+    alone = starts(model)
+    worlds.put(alone)
+    for _ in range(5):
+        worlds.step()
+    worlds.take(alone)
+    assert datas[0].qpos.tobytes() == alone[0].qpos.tobytes()
+    assert datas[2].qpos.tobytes() == alone[2].qpos.tobytes()
+
+
+def test_branches_whose_parameters_change_the_model_step_on_c(small, monkeypatch):
+    """Warp holds one model for its worlds: a branch whose parameters made its own model steps on C, bit for
+    bit as on the C batch; the branches that share the model step on warp."""
+    world = load_world(ROOT / "scenarios" / "two_cubes.yaml")
+    try:
+        request = dict(branches=3, params={"core.friction": [0.8, 0.8, 0.3]}, record=("core.aa.pos",))
+        with Batch(world, backend="lockstep") as batch:
+            on_c = batch.run(100, **request)
+        monkeypatch.setenv("DYNABRAIN_LOCKSTEP_PHYSICS", "mjwarp")
+        before = dict(warp_batch.STEPPED)
+        with Batch(world, backend="lockstep") as batch:
+            mixed = batch.run(100, **request)
+        on_warp_ = warp_batch.STEPPED["warp"] - before.get("warp", 0)
+        assert on_warp_ + warp_batch.STEPPED["c"] - before.get("c", 0) == 300 and on_warp_ >= 100
+        gaps = [np.abs(mixed.branch("core.aa.pos", b) - on_c.branch("core.aa.pos", b)).max() for b in range(3)]
+        assert all(gap <= warp_batch.TOLERANCE["qpos_m"] for gap in gaps), gaps
+        assert sum(gap == 0 for gap in gaps) == 3 - on_warp_ // 100, gaps  # those on C: bit equal
     finally:
         world.close()
 

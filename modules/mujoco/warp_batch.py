@@ -81,7 +81,7 @@ def _warp() -> tuple[Any, Any]:
         raise DynabrainError(f"modules.mujoco.warp_batch: warp-lang is not installed ({exc}); "
                              "pip install 'dynabrain[warp]'") from exc
     wp.config.kernel_cache_dir = cache_dir()
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # not a line per kernel module loaded
     wp.init()
     try:
         import mujoco_warp as mjw
