@@ -72,14 +72,15 @@ def rollout_run(model: mujoco.MjModel, data: mujoco.MjData, branches: int, ticks
 
 def batch_run(world, physics: str, branches: int, ticks: int):
     """A call that runs a lockstep batch of the humanoid with its modules on ``physics``, from the world's
-    state (each branch its own servo offsets), run once here (warp compiles its kernels); (the call, the
-    batch to close, the seconds of that first run)."""
+    state (each branch its own servo offsets and friction, as in bench/predict.py), run once here (warp
+    compiles its kernels); (the call, the batch to close, the seconds of that first run)."""
     batch = Batch(world, backend="lockstep")
     q_ref = np.zeros((branches, ticks, *np.shape(world.get("servo.q_ref"))))
     q_ref[:, :, :2] = np.linspace(-0.1, 0.1, branches)[:, None, None]
 
     def run() -> None:
-        result = last[physics] = batch.run(ticks, branches=branches, inputs={"servo.q_ref": q_ref}, record=RECORD)
+        result = last[physics] = batch.run(ticks, branches=branches, inputs={"servo.q_ref": q_ref}, record=RECORD,
+                                           params={"core.friction": np.linspace(0.5, 1.2, branches)})
         if not all(s.ok for s in result.status) or any("failed" in note for note in result.notes):
             sys.exit(f"the {physics} batch failed: {result.notes} {[s.reason for s in result.status if not s.ok]}")
 

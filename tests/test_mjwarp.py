@@ -1,9 +1,9 @@
 """The MJWarp physics (issue 25, item 2: `modules.mujoco.warp_batch`) on warp's CPU device, against MuJoCo's
 C: a small model's worlds stepped together on warp stay within `warp_batch.TOLERANCE` of C, run to run
 they are bit equal, a world that diverges fails alone, a lockstep batch of the two cubes with
-``physics="mjwarp"`` follows the batch on C within the same tolerance, and a branch whose parameters
-made a model of its own steps on C. Skipped, with warp's reason, where warp is not installed or cannot
-start or compile.
+``physics="mjwarp"`` follows the batch on C within the same tolerance, per-branch friction steps on
+warp (a value per world), and a branch whose parameters warp cannot hold per world (gravity) steps on
+C. Skipped, with warp's reason, where warp is not installed or cannot start or compile.
 
 Warp compiles its kernels on first use (cold, on two cores: about 18 s for the small model and 13 s more
 for the two cubes; then read from warp's kernel cache, `warp_batch.cache_dir`: the file runs in about
@@ -150,23 +150,48 @@ def test_a_world_that_diverges_fails_alone(small):
     assert datas[2].qpos.tobytes() == alone[2].qpos.tobytes()
 
 
-def test_branches_whose_parameters_change_the_model_step_on_c(small, monkeypatch):
-    """Warp holds one model for its worlds: a branch whose parameters made its own model steps on C, bit for
-    bit as on the C batch; the branches that share the model step on warp."""
+def on_both(world, monkeypatch, ticks: int, **request) -> tuple:
+    """The same lockstep batch on C and on warp: (result on C, result on warp, world-ticks on warp, on C)."""
+    with Batch(world, backend="lockstep") as batch:
+        on_c = batch.run(ticks, **request)
+    monkeypatch.setenv("DYNABRAIN_LOCKSTEP_PHYSICS", "mjwarp")
+    before = dict(warp_batch.STEPPED)
+    with Batch(world, backend="lockstep") as batch:
+        on_warp_ = batch.run(ticks, **request)
+    monkeypatch.delenv("DYNABRAIN_LOCKSTEP_PHYSICS")
+    return (on_c, on_warp_, warp_batch.STEPPED["warp"] - before.get("warp", 0),
+            warp_batch.STEPPED["c"] - before.get("c", 0))
+
+
+def test_per_branch_friction_steps_on_warp_each_world_its_own(small, monkeypatch):
+    """A parameter that writes model fields warp holds per world (friction: geom_friction): every branch on
+    warp, each with its own value, within the tolerance of C (400 ticks: the cubes land and slide)."""
     world = load_world(ROOT / "scenarios" / "two_cubes.yaml")
     try:
-        request = dict(branches=3, params={"core.friction": [0.8, 0.8, 0.3]}, record=("core.aa.pos",))
-        with Batch(world, backend="lockstep") as batch:
-            on_c = batch.run(100, **request)
-        monkeypatch.setenv("DYNABRAIN_LOCKSTEP_PHYSICS", "mjwarp")
-        before = dict(warp_batch.STEPPED)
-        with Batch(world, backend="lockstep") as batch:
-            mixed = batch.run(100, **request)
-        on_warp_ = warp_batch.STEPPED["warp"] - before.get("warp", 0)
-        assert on_warp_ + warp_batch.STEPPED["c"] - before.get("c", 0) == 300 and on_warp_ >= 100
-        gaps = [np.abs(mixed.branch("core.aa.pos", b) - on_c.branch("core.aa.pos", b)).max() for b in range(3)]
-        assert all(gap <= warp_batch.TOLERANCE["qpos_m"] for gap in gaps), gaps
-        assert sum(gap == 0 for gap in gaps) == 3 - on_warp_ // 100, gaps  # those on C: bit equal
+        on_c, on_warp_, warp, c = on_both(world, monkeypatch, 400, branches=3,
+                                          params={"core.friction": [0.8, 0.8, 0.3]}, record=("core.aa.pos",))
+        assert (warp, c) == (1200, 0)
+        ends = [on_c.branch("core.aa.pos", b)[-1] for b in range(3)]
+        assert np.abs(ends[2] - ends[0]).max() > 1e-3  # the low friction changed where the cube ends
+        for b in range(3):
+            gap = np.abs(on_warp_.branch("core.aa.pos", b) - on_c.branch("core.aa.pos", b)).max()
+            assert 0 < gap <= warp_batch.TOLERANCE["qpos_m"], (b, gap)
+    finally:
+        world.close()
+
+
+def test_a_branch_whose_parameters_warp_cannot_hold_per_world_steps_on_c(small, monkeypatch):
+    """Gravity is one of the model's options, which warp shares among its worlds: the branch with its own
+    gravity steps on C, bit for bit as on the C batch; the others on warp."""
+    world = load_world(ROOT / "scenarios" / "two_cubes.yaml")
+    try:
+        gravity = [(0.0, 0.0, -9.81), (0.0, 0.0, -9.81), (0.0, 0.0, -3.0)]
+        on_c, on_warp_, warp, c = on_both(world, monkeypatch, 100, branches=3, params={"core.gravity": gravity},
+                                          record=("core.aa.pos",))
+        assert (warp, c) == (200, 100)
+        gaps = [np.abs(on_warp_.branch("core.aa.pos", b) - on_c.branch("core.aa.pos", b)).max() for b in range(3)]
+        assert 0 < gaps[0] <= warp_batch.TOLERANCE["qpos_m"] and 0 < gaps[1] <= warp_batch.TOLERANCE["qpos_m"]
+        assert gaps[2] == 0, gaps
     finally:
         world.close()
 

@@ -21,10 +21,13 @@ Not bit for bit MuJoCo's C: warp computes in float32 and solves in its own order
 measures the gap against C (`TOLERANCE`); run to run on the CPU device it is deterministic (bit equal).
 A world whose state is not finite after the step fails alone with `PhysicsDivergedError`; the others go on.
 
-Cores that cannot share the warp model step with their own C `step`, alone, before the rest: an animated
-robot's and one whose velocity input holds a value (Python between the halves of its step, as in
-`batched.step_cores`), and one whose MjModel is not the one most of the cores share (a branch whose
-parameters changed the model: warp holds one model for all its worlds).
+Branches with parameters of their own: warp's model holds one value per world of many fields (masses,
+frictions, gains, damping: those `mujoco_warp` marks batched); the model most cores share is put on the
+device, and the fields in which another core's model differs from it hold each world's own value. A
+core whose model differs in anything else (an option such as gravity, a field warp shares among its
+worlds) steps with its own C `step`, alone, before the rest; so do an animated robot's core and one
+whose velocity input holds a value (Python between the halves of its step, as in `batched.step_cores`).
+Warp's own switches derived from values (e.g. whether any tendon is stiff) are the shared model's.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ TOLERANCE = {"qpos_m": 1e-3, "qvel_m_s": 1e-2}
 """The largest gap accepted between warp (CPU device) and MuJoCo's C over runs of up to a second of 2 ms
 ticks, contacts included (`tests/test_mjwarp.py` checks it over 200 ticks). Measured: at most 3e-7 m and
 4e-6 m/s on the test's small model (a box dropped onto the floor, a double pendulum driven by a motor),
-3e-6 m on the two cubes, 2e-4 m on the humanoid's pelvis with its servos over 500 ticks
+3e-6 m on the two cubes, 2.1e-4 m on the humanoid's pelvis with its servos over 500 ticks
 (bench/mjwarp.py): warp's float32 and its solver's own order of sums. Over longer runs a chaotic contact
 (a box sliding off another's corner) grows the gap like any change of rounding: decimetres after 5 s of
 the two cubes. See bench/README.md."""
@@ -59,16 +62,13 @@ _IN = ("qpos", "qvel", "act", "ctrl", "qfrc_applied", "xfrc_applied", "mocap_pos
 """The fields of an MjData that make a world's next step (besides time)."""
 _OUT = ("qpos", "qvel", "act", "qacc_warmstart", "qacc", "sensordata")
 """The fields that come back from warp after a step (besides time); `mj_step1` makes the rest."""
-_SIGNATURE = ("body_mass", "body_inertia", "body_pos", "geom_size", "geom_friction", "dof_damping",
-              "dof_armature", "jnt_stiffness", "actuator_gainprm", "actuator_biasprm", "actuator_gear")
-"""The model arrays a run-time parameter writes: a model written in place since warp took it is taken again."""
-
 STEPPED = Counter()
 """World-ticks stepped: ``STEPPED["warp"]`` on MJWarp, ``STEPPED["c"]`` on C instead (a core that cannot
 share the warp model, or a model warp refuses): tests and benches read it to know what ran."""
 _LOCK = threading.Lock()
 _REFUSED: dict[int, tuple[mujoco.MjModel, str]] = {}  # id of an MjModel warp refused -> (it, why)
-_WORLDS: dict[tuple[int, int, str], WarpWorlds] = {}  # (id of an MjModel, worlds, device) -> its warp worlds
+_WORLDS: dict[tuple, WarpWorlds] = {}  # (ids of a model and its core's params, worlds, device, fields) -> them
+_DIFFERING: dict[tuple[int, ...], tuple[tuple, frozenset[str] | None]] = {}  # `_differing`
 
 
 @functools.cache
@@ -112,31 +112,39 @@ def unavailable() -> str | None:
     return None
 
 
-def _signature(model: mujoco.MjModel) -> bytes:
-    parts = [np.asarray(getattr(model, name)).tobytes() for name in _SIGNATURE]
-    parts.append(np.asarray(model.opt.gravity).tobytes() + np.float64(model.opt.timestep).tobytes())
-    return b"".join(parts)
-
-
 class WarpWorlds:
     """``worlds`` copies of one MjModel on a warp device: their state put from MjDatas, stepped together,
     and taken back into them."""
 
-    def __init__(self, model: mujoco.MjModel, worlds: int, device: str | None = None):
+    def __init__(self, model: mujoco.MjModel, worlds: int, device: str | None = None,
+                 per_world: frozenset[str] = frozenset()):
+        """``per_world``: the model's fields that hold a value per world (`set_models` fills them), the
+        others are ``model``'s for every world."""
         wp, mjw = _warp()
-        self.model, self.worlds = model, worlds
+        self.model, self.worlds, self.per_world = model, worlds, per_world
         self.device = device or default_device()
-        self.signature = _signature(model)
+        self.models_key: tuple = ()
         taken = copy.copy(model)  # warp refuses MuJoCo's auto-reset flag (the core sets it): divergence is ours
         taken.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
         try:
             with wp.ScopedDevice(self.device):
-                self.wmodel = mjw.put_model(taken)
+                self.wmodel = mjw.put_model(taken, batch_sizes={name: worlds for name in per_world})
                 self.wdata = mjw.make_data(model, nworld=worlds)
         except Exception as exc:  # warp refuses the model (a feature it lacks) or the device
             raise DynabrainError(f"modules.mujoco.warp_batch: MJWarp cannot take this model on device "
                                  f"{self.device!r}: {exc}") from exc
         self._wp, self._mjw = wp, mjw
+
+    def set_models(self, models: Sequence[mujoco.MjModel], key: tuple = ()) -> None:
+        """Each world's values of the `per_world` fields from its own model (``models``: one per world, all
+        of ``model``'s structure); ``key`` says which models they are: the same key again copies nothing."""
+        if key and key == self.models_key:
+            return
+        for name in self.per_world:
+            target = getattr(self.wmodel, name)
+            values = np.stack([np.asarray(getattr(m, name)) for m in models])
+            target.assign(values.reshape(target.shape + getattr(target.dtype, "_shape_", ())))
+        self.models_key = key
 
     def put(self, datas: Sequence[mujoco.MjData]) -> None:
         """The state of ``datas`` (one per world, in order) onto the device."""
@@ -174,27 +182,70 @@ class WarpWorlds:
         return finite
 
 
-def worlds_for(model: mujoco.MjModel, worlds: int, device: str | None = None) -> WarpWorlds:
-    """The warp worlds of ``model`` for ``worlds`` branches (made once, kept while the model is unchanged)."""
+def worlds_for(model: mujoco.MjModel, worlds: int, device: str | None = None, params: Any = None,
+               per_world: frozenset[str] = frozenset()) -> WarpWorlds:
+    """The warp worlds of ``model`` for ``worlds`` branches, ``per_world`` fields their own (made once, kept
+    while ``params``, the values its core wrote the model from, are the same object: a core writes its
+    model only from its parameters, and a change of them is a new object)."""
     device = device or default_device()
-    key = (id(model), worlds, device)
+    key = (id(model), id(params), worlds, device, per_world)
     with _LOCK:
         held = _WORLDS.get(key)
-        if held is not None and held.model is model and held.signature == _signature(model):
+        if held is not None and held.model is model and held.params is params:
             return held
         if len(_WORLDS) >= 16:
             _WORLDS.clear()
-        made = _WORLDS[key] = WarpWorlds(model, worlds, device)
+        made = _WORLDS[key] = WarpWorlds(model, worlds, device, per_world)
+        made.params = params
         return made
+
+
+@functools.cache
+def _array_fields() -> tuple[tuple[str, ...], frozenset[str]]:
+    """(the names of MjModel's arrays, those of them warp can hold one value per world of)."""
+    import dataclasses
+
+    from mujoco_warp._src import types, warp_util
+
+    probe = mujoco.MjModel.from_xml_string("<mujoco/>")
+    names = tuple(n for n in dir(probe) if not n.startswith("_") and isinstance(getattr(probe, n), np.ndarray))
+    per_world = frozenset(f.name for f in dataclasses.fields(types.Model)
+                          if warp_util.is_array_spec(f.type) and getattr(f.type, "shape", ())[:1] == ("*",))
+    return names, per_world & set(names)
+
+
+def _differing(base: mujoco.MjModel, base_params: Any, other: mujoco.MjModel, params: Any) -> frozenset[str] | None:
+    """The fields in which ``other`` differs from ``base``, when warp can hold each per world; None when
+    they differ in anything else (their options, their structure, a field warp shares). Kept while the
+    params they were written from are the same objects (`worlds_for`)."""
+    if other is base:
+        return frozenset()
+    key = (id(base), id(base_params), id(other), id(params))
+    held = _DIFFERING.get(key)
+    if held is not None and all(a is b for a, b in zip(held[0], (base, base_params, other, params), strict=True)):
+        return held[1]
+    names, per_world = _array_fields()
+    found: frozenset[str] | None = None
+    if str(base.opt) == str(other.opt):
+        differ = {n for n in names if getattr(base, n).shape != getattr(other, n).shape
+                  or not np.array_equal(getattr(base, n), getattr(other, n), equal_nan=True)}
+        found = frozenset(differ) if differ <= per_world else None
+    if len(_DIFFERING) >= 4096:
+        _DIFFERING.clear()
+    _DIFFERING[key] = ((base, base_params, other, params), found)
+    return found
 
 
 def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, BaseException]) -> None:
     """Step the MuJoCo cores ``members`` (one per branch) one tick on MJWarp: see the module docstring."""
     shared = Counter(id(core._compiled.model) for core in members).most_common(1)[0][0]
+    base = next(core for core in members if id(core._compiled.model) == shared)
+    per_world: set[str] = set()
     stepped: list[tuple[int, Any, Any]] = []  # (index, core, compiled scene) of those stepped on warp
     for k, core in enumerate(members):
         s = core._compiled
-        if s.anim is not None or core._vel.tobytes() != core._vel_unset or id(s.model) != shared:
+        differ = _differing(base._compiled.model, base.params, s.model, core.params)
+        if s.anim is not None or core._vel.tobytes() != core._vel_unset or differ is None:
             try:  # its own C step, alone
                 core.step(t_ns, dt_ns)
             except Exception as exc:  # this branch's failure
@@ -205,16 +256,19 @@ def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, 
             moves = core._moves = (s, *core._plan_moves(s))
         for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls, wrenches
             dst[di] = src if si is None else src[si]
+        per_world |= differ
         stepped.append((k, core, s))
     if not stepped:
         return
-    model = stepped[0][2].model
     datas = [s.data for _, _, s in stepped]
-    warp_worlds = _worlds_or_none(model, len(datas))
+    warp_worlds = _worlds_or_none(base._compiled.model, len(datas), base.params, frozenset(per_world))
     if warp_worlds is None:  # warp refused the model: MuJoCo's C on threads, as without MJWarp
         STEPPED["c"] += len(members)
         batched.step_cores([core for _, core, _ in stepped], t_ns, dt_ns, _Shifted(failed, stepped))
         return
+    if per_world:
+        warp_worlds.set_models([s.model for _, _, s in stepped],
+                               tuple((id(s.model), id(core.params)) for _, core, s in stepped))
     STEPPED["warp"] += len(stepped)
     STEPPED["c"] += len(members) - len(stepped)
     warp_worlds.put(datas)
@@ -241,13 +295,13 @@ class _Shifted(dict):
         self.failed[self.stepped[k][0]] = exc
 
 
-def _worlds_or_none(model: mujoco.MjModel, worlds: int) -> WarpWorlds | None:
+def _worlds_or_none(model: mujoco.MjModel, worlds: int, params: Any, per_world: frozenset[str]) -> WarpWorlds | None:
     """`worlds_for`, or None (warned once per model, with warp's reason) when warp refuses the model."""
     refused = _REFUSED.get(id(model))
     if refused is not None and refused[0] is model:
         return None
     try:
-        return worlds_for(model, worlds)
+        return worlds_for(model, worlds, params=params, per_world=per_world)
     except DynabrainError as exc:
         _REFUSED[id(model)] = (model, str(exc))
         warnings.warn(f"{exc}; these cores step on MuJoCo's C instead", RuntimeWarning, stacklevel=2)
