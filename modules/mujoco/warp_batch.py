@@ -117,11 +117,12 @@ class WarpWorlds:
     and taken back into them."""
 
     def __init__(self, model: mujoco.MjModel, worlds: int, device: str | None = None,
-                 per_world: frozenset[str] = frozenset()):
+                 per_world: frozenset[str] = frozenset(), params: Any = None):
         """``per_world``: the model's fields that hold a value per world (`set_models` fills them), the
-        others are ``model``'s for every world."""
+        others are ``model``'s for every world; ``params``: the values its core wrote ``model`` from
+        (`worlds_for`)."""
         wp, mjw = _warp()
-        self.model, self.worlds, self.per_world = model, worlds, per_world
+        self.model, self.worlds, self.per_world, self.params = model, worlds, per_world, params
         self.device = device or default_device()
         self.models_key: tuple = ()
         taken = copy.copy(model)  # warp refuses MuJoCo's auto-reset flag (the core sets it): divergence is ours
@@ -153,6 +154,8 @@ class WarpWorlds:
             if target.size:
                 target.assign(np.stack([getattr(d, name) for d in datas]).astype(np.float32))
         self.wdata.time.assign(np.array([d.time for d in datas], dtype=np.float32))
+        if self.wdata.eq_active.size:  # equality constraints switched on or off at run time (a made joint)
+            self.wdata.eq_active.assign(np.stack([d.eq_active for d in datas]).astype(bool))
 
     def step(self, substeps: int = 1) -> None:
         """Every world ``substeps`` MuJoCo steps (`mujoco_warp.step`), waiting for the device to finish."""
@@ -195,8 +198,7 @@ def worlds_for(model: mujoco.MjModel, worlds: int, device: str | None = None, pa
             return held
         if len(_WORLDS) >= 16:
             _WORLDS.clear()
-        made = _WORLDS[key] = WarpWorlds(model, worlds, device, per_world)
-        made.params = params
+        made = _WORLDS[key] = WarpWorlds(model, worlds, device, per_world, params)
         return made
 
 
