@@ -203,3 +203,14 @@ def test_an_unknown_physics_is_refused_by_name():
             LockstepBackend(world, physics="bullet")
     finally:
         world.close()
+
+
+def test_mjwarp_where_warp_cannot_run_is_refused_with_the_reason(monkeypatch):
+    """The backend asks the physics whether it can run here (a fake answer: warp is installed here)."""
+    world = load_world(ROOT / "scenarios" / "two_cubes.yaml")
+    monkeypatch.setattr(warp_batch, "unavailable", lambda: "warp-lang is not installed")
+    try:
+        with pytest.raises(DynabrainError, match=r"physics 'mjwarp' cannot run here: warp-lang is not installed"):
+            LockstepBackend(world, physics="mjwarp")
+    finally:
+        world.close()

@@ -95,7 +95,8 @@ def cache_dir() -> str:
     """Where warp keeps its compiled kernels: ``DYNABRAIN_WARP_CACHE``, or a folder of the system's
     temporary folder (shared by every run of this user)."""
     given = os.environ.get("DYNABRAIN_WARP_CACHE", "").strip()
-    return given or os.path.join(tempfile.gettempdir(), f"dynabrain-warp-kernels-{os.getuid()}")
+    user = os.getuid() if hasattr(os, "getuid") else "user"
+    return given or os.path.join(tempfile.gettempdir(), f"dynabrain-warp-kernels-{user}")
 
 
 def default_device() -> str:
@@ -103,8 +104,9 @@ def default_device() -> str:
     return os.environ.get("DYNABRAIN_WARP_DEVICE", "").strip() or "cpu"
 
 
+@functools.cache
 def unavailable() -> str | None:
-    """Why MJWarp cannot step here (not installed, warp fails to start), or None when it can."""
+    """Why MJWarp cannot step here (not installed, warp fails to start), or None when it can (asked once)."""
     try:
         _warp()
     except Exception as exc:  # any failure to import or initialise is the answer
@@ -240,6 +242,10 @@ def _differing(base: mujoco.MjModel, base_params: Any, other: mujoco.MjModel, pa
 
 def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, BaseException]) -> None:
     """Step the MuJoCo cores ``members`` (one per branch) one tick on MJWarp: see the module docstring."""
+    if unavailable() is not None:  # the lockstep backend refuses "mjwarp" then; a direct call steps on C
+        STEPPED["c"] += len(members)
+        batched.step_cores(members, t_ns, dt_ns, failed)
+        return
     shared = Counter(id(core._compiled.model) for core in members).most_common(1)[0][0]
     base = next(core for core in members if id(core._compiled.model) == shared)
     per_world: set[str] = set()

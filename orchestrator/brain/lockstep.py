@@ -62,7 +62,13 @@ def _physics(name: str | None) -> Any:
     name = name or os.environ.get("DYNABRAIN_LOCKSTEP_PHYSICS", "").strip() or "threads"
     if name not in PHYSICS:
         raise DynabrainError(f"batch backend 'lockstep': no physics {name!r} (one of {', '.join(PHYSICS)})")
-    return importlib.import_module(PHYSICS[name]) if PHYSICS[name] else None
+    if PHYSICS[name] is None:
+        return None
+    physics = importlib.import_module(PHYSICS[name])
+    why = physics.unavailable()
+    if why is not None:
+        raise DynabrainError(f"batch backend 'lockstep': physics {name!r} cannot run here: {why}")
+    return physics
 
 
 @dataclass
