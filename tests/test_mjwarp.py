@@ -5,9 +5,9 @@ they are bit equal, a world that diverges fails alone, a lockstep batch of the t
 warp (a value per world), and a branch whose parameters warp cannot hold per world (gravity) steps on
 C. Skipped, with warp's reason, where warp is not installed or cannot start or compile.
 
-Warp compiles its kernels on first use (cold, on two cores: about 18 s for the small model and 13 s more
-for the two cubes; then read from warp's kernel cache, `warp_batch.cache_dir`: the file runs in about
-8 s); the module's fixture pays it once."""
+Warp compiles its kernels on first use (cold, on two cores: 18 s for the small model and 13 s more for
+the two cubes, the file 37 s; then read from warp's kernel cache, `warp_batch.cache_dir`: the file runs
+in about 10 s); the module's fixture pays it once."""
 
 from __future__ import annotations
 
