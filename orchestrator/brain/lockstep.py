@@ -303,12 +303,11 @@ class _Lockstep:
             rec = self.structure.records[self._record_index(entry.name)]
             ports = ", ".join(f"{p.name} {p.shape}" for p in rec.outputs if p.view_of is None)
             assert all(b.start.structure.dispatch[i].name == entry.name for b in self.branches)
-            step_batch = cls.step_batch
+            step_batch, batched = cls.step_batch, cls.step_batch.__func__ is not _EACH
             if self.physics is not None and self.physics.handles(cls):
-                step_batch = functools.partial(self.physics.step_batch, cls)
+                step_batch, batched = functools.partial(self.physics.step_batch, cls), True
             out.append(_Entry(entry.name, entry.period_ns, entry.period_ticks, entry.phase, entry.copies,
-                              entry.gather, members, step_batch, step_batch is not cls.step_batch
-                              or cls.step_batch.__func__ is not _EACH,
+                              entry.gather, members, step_batch, batched,
                               slots.inputs_flat or slice(0, 0), slots.outputs_flat or slice(0, 0), ports))
         return out
 
