@@ -254,6 +254,8 @@ def test_processes_need_a_world_that_can_be_rebuilt(humanoid):
             Batch(bare, backend="processes")
         # auto falls back on the in-process backend: lockstep where there are cores to step on, else serial
         assert Batch(bare).backend == ("lockstep" if (os.cpu_count() or 1) > 1 else "serial")
+        with pytest.raises(DynabrainError, match=r"physics='mjwarp' chooses how the lockstep backend"):
+            Batch(bare, backend="serial", physics="mjwarp")
     finally:
         bare.close()
 

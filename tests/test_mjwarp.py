@@ -117,9 +117,8 @@ def test_a_lockstep_batch_on_mjwarp_follows_the_batch_on_c(small, monkeypatch):
         record = ("core.aa.pos", "core.bb.pos")
         with Batch(world, backend="lockstep") as batch:
             on_c = batch.run(200, starts=branch_starts, record=record)
-        monkeypatch.setenv("DYNABRAIN_LOCKSTEP_PHYSICS", "mjwarp")
         before = warp_batch.STEPPED["warp"]
-        with Batch(world, backend="lockstep") as batch:
+        with Batch(world, backend="lockstep", physics="mjwarp") as batch:
             on_warp_ = batch.run(200, starts=branch_starts, record=record)
         assert warp_batch.STEPPED["warp"] - before == 3 * 200  # every branch's every tick on warp
         assert not any("failed" in note for note in on_warp_.notes), on_warp_.notes

@@ -38,7 +38,8 @@ Backends, one API:
 - ``lockstep``: every branch in this process, advanced tick by tick together: the N physics of a tick
   in one call on threads (GIL released), each module stepped once for all branches through its
   batched step (`Module.step_batch`: numpy in the shipped modules; others branch by branch); any
-  world, per-branch starts, parameters and inputs (`lockstep.LockstepBackend`);
+  world, per-branch starts, parameters and inputs (`lockstep.LockstepBackend`); ``physics="mjwarp"``
+  steps the MuJoCo cores on MJWarp instead (warp's CPU device, or a GPU: `modules.mujoco.warp_batch`);
 - ``ray``: the same workers as Ray actors, on a local Ray or a cluster (``address=``), for a brain
   that outgrows one machine (``pip install 'dynabrain[ray]'``);
 - ``auto``: on a machine with more than one core, ``processes`` when the world can be rebuilt (the
@@ -147,9 +148,12 @@ class Batch:
     """
 
     def __init__(self, world: World, *, backend: str = "auto", workers: int | None = None,
-                 address: str | None = None, build: Callable[[], World] | None = None):
+                 address: str | None = None, build: Callable[[], World] | None = None, physics: str | None = None):
         if backend not in BACKENDS:
             raise DynabrainError(f"batch backend {backend!r} is unknown; backends: {', '.join(BACKENDS)}")
+        if physics is not None and backend != "lockstep":
+            raise DynabrainError(f"batch: physics={physics!r} chooses how the lockstep backend steps its MuJoCo "
+                                 f"cores; backend {backend!r} steps each world's own")
         if workers is not None and (not isinstance(workers, int) or workers < 1):
             raise DynabrainError(f"batch workers must be a positive integer, got {workers!r}")
         self.world = world
@@ -160,7 +164,7 @@ class Batch:
         if backend in ("processes", "ray") and self.build is None:
             raise DynabrainError(f"batch backend {backend!r} builds a copy of the world in each worker: make the "
                                  "world with load_world (it knows how), or pass build=<a picklable call>")
-        self.backend, self.workers, self.address = backend, workers, address
+        self.backend, self.workers, self.address, self._physics = backend, workers, address, physics
         self._pool: Any = None
         self._scratch: BranchRunner | None = None
         self._issued: dict[int, bytes] = {}  # final states this batch returned: starts that need no check
@@ -249,7 +253,7 @@ class Batch:
             elif self.backend == "lockstep":  # every branch here, tick by tick together (brain/lockstep.py)
                 from .lockstep import LockstepBackend
 
-                self._pool = LockstepBackend(self.world, self.workers)
+                self._pool = LockstepBackend(self.world, self.workers, self._physics)
             elif self.backend == "threads":  # a core-only MuJoCo world, through mujoco.rollout (brain/rollout.py)
                 from .rollout import RolloutBackend
 
