@@ -21,6 +21,10 @@ ZMP: 8 modules besides the core). Printed, each figure measured in this run, the
    (each branch's friction set by the core), data (one per thread) and controls: steps per second of
    each, all branches together, and their ratio (target: threads >= 0.9x rollout).
 
+The lockstep batch with its physics on MJWarp (``Batch(physics="mjwarp")``) has a bench of its own,
+``bench/mjwarp.py`` (warp's compile and CPU device are slow enough to drown these rounds; its rows
+print beside lockstep on C and `mujoco.rollout` there).
+
 Run: ``.venv/bin/python bench/predict.py [--branches 64] [--ticks 500] [--rounds 3] [--ray]``
 """
 
