@@ -86,6 +86,7 @@ from dynabrain.orchestrator.kernel.module import Capabilities, Param, Port, Setu
 from . import animate, batched, warning_log
 from . import options as mo
 from . import scene as ms
+from .drawing import ModelFileDrawing
 
 warning_log.install()  # MuJoCo's warnings to the log, each kind once, counted (no MUJOCO_LOG.TXT)
 
@@ -624,6 +625,25 @@ class MujocoCore(EditedCore):
         twin._cache = OrderedDict()
         twin._use(twin._remember(self._compiled.clone()))
         return twin
+
+    def engine_notes(self) -> str | None:
+        """MuJoCo's warnings the run counted but did not show again (`warning_log`)."""
+        return warning_log.summary()
+
+    # -- drawing (logs, viewers) --------------------------------------------------------------------------
+    def world_geoms(self) -> list[dict]:
+        """The model file's geoms of no body (its ground), read from the file again (`drawing`)."""
+        return self._drawing().world_geoms()
+
+    def mesh(self, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """A model file's mesh for drawing (`drawing`)."""
+        return self._drawing().mesh(name)
+
+    def _drawing(self) -> ModelFileDrawing:
+        drawing = self.__dict__.get("_drawing_of")
+        if drawing is None:
+            drawing = self.__dict__["_drawing_of"] = ModelFileDrawing(self.scene.model)
+        return drawing
 
     mj = property(operator.attrgetter("_view"), doc=(
         "The MuJoCo model and data simulated now (a `MujocoView`), read only; another view after each switch "

@@ -15,7 +15,7 @@ import sys
 import tempfile
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.markup import escape
@@ -129,18 +129,18 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
         history = world.history.describe()
         outputs.finish(result)
     finally:
+        core = world.core
         world.close()  # also on Ctrl-C: observers (the log) are closed and stay readable
     _summary(result, history)
-    _engine_warnings()
+    _engine_notes(core)
     if view:
         view_after_run(outputs.logger.path, view_port, temporary=temporary)
     raise typer.Exit(0 if result.ok else 1)
 
 
-def _engine_warnings() -> None:
-    """How many of MuJoCo's warnings the run did not show (each kind is logged once), once per run."""
-    warning_log = sys.modules.get("dynabrain.modules.mujoco.warning_log")  # (loaded with the MuJoCo core)
-    line = warning_log.summary() if warning_log is not None else None
+def _engine_notes(core: Any) -> None:
+    """What the engine said that the run did not show (MuJoCo: how many of its warnings were repeats)."""
+    line = core.engine_notes() if core is not None else None
     if line and not _quiet:
         err_console.print(line, markup=False)
 

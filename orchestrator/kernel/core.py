@@ -139,6 +139,21 @@ class PhysicsCore(Module):
     def body_info(self, name: str) -> BodyInfo:
         """Geometry and attachment of a body."""
 
+    def engine_notes(self) -> str | None:
+        """A line about what the engine said that was not shown (repeats of its warnings), for the end of
+        a run; None by default."""
+        return None
+
+    def world_geoms(self) -> list[dict]:
+        """Geoms that belong to no body (a model file's ground), each described as `BodyInfo.geoms` are,
+        for drawing (logs, viewers); none by default."""
+        return []
+
+    def mesh(self, name: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """A model file's mesh ``name`` for drawing: vertices ``(n, 3)`` and faces ``(m, 3)``; None (left
+        out of the drawing) by default."""
+        return None
+
     @abstractmethod
     def body_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """World position (3,) and orientation quaternion (4, w-x-y-z) of a body, now."""

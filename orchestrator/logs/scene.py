@@ -7,10 +7,8 @@ triangle list. Bodies of objects that are not selected (frozen, `World.make`) ar
 so are the bodies of a branch the brain imagined, in that branch's frames (`SceneDrawing.imagined`).
 
 Geoms that belong to no body (a model file's ground, attached to the world) are drawn in an entity
-``world`` in the frame ``world``. The core interface describes bodies only, so these, and mesh
-vertices, come from ``core.world_geoms()`` and ``core.mesh(name) -> (vertices (n, 3), faces (m, 3))``
-when the core has those calls; otherwise, for a MuJoCo core with a model file, from the model file
-compiled again here. A mesh found neither way is left out of the drawing (the rest is drawn).
+``world`` in the frame ``world``. These, and mesh vertices, come from the core (`PhysicsCore.world_geoms`,
+`PhysicsCore.mesh`); a mesh the core does not give is left out of the drawing (the rest is drawn).
 """
 
 from __future__ import annotations
@@ -56,8 +54,7 @@ class SceneDrawing:
         self.bodies = [b for b in core.bodies() if core.body_info(b).geoms]
         self._object = {b: _top_object(core, b) for b in self.bodies}
         self._cache: dict[tuple[str, bool], bytes] = {}
-        self._model = _ModelFile(core)
-        world = self._model.world_geoms()
+        world = core.world_geoms()
         self._world = self._make_entity("world", "world", world, "static") if world else b""
 
     def encode(self, t_ns: int) -> bytes:
@@ -112,7 +109,7 @@ class SceneDrawing:
         pos, quat = tuple(geom.get("pos", (0.0, 0.0, 0.0))), tuple(geom.get("quat", (1.0, 0.0, 0.0, 0.0)))
         size = tuple(geom.get("size", ()))
         if kind == "mesh":
-            mesh = self._model.mesh(geom.get("mesh", ""))
+            mesh = self.core.mesh(geom.get("mesh", ""))
             if mesh is not None:
                 verts, faces = mesh
                 entity.triangles.append(TriangleListPrimitive(
@@ -155,73 +152,6 @@ def _plane(entity: SceneEntity, size: tuple, pos: tuple, quat: tuple, color: Col
 
 _DRAW = {"box": _box, "sphere": _sphere, "ellipsoid": _sphere, "cylinder": _cylinder, "capsule": _capsule,
          "plane": _plane}
-
-
-class _ModelFile:
-    """World geoms and mesh vertices (see the module docstring)."""
-
-    def __init__(self, core: Any):
-        self.core = core
-        self._model: Any = None
-        self._tried = False
-
-    def world_geoms(self) -> list[dict]:
-        call = getattr(self.core, "world_geoms", None)
-        if callable(call):
-            return list(call())
-        model = self._mujoco_model()
-        if model is None:
-            return []
-        return [_mujoco_geom(model, g) for g in range(model.ngeom) if int(model.geom_bodyid[g]) == 0]
-
-    def mesh(self, name: str) -> tuple[np.ndarray, np.ndarray] | None:
-        call = getattr(self.core, "mesh", None)
-        if callable(call):
-            verts, faces = call(name)
-            return np.asarray(verts, dtype=float).reshape(-1, 3), np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-        model = self._mujoco_model()
-        if model is None:
-            return None
-        try:
-            mid = model.mesh(name).id
-        except KeyError:
-            _log.warning("scene: mesh %r is not in the model file; it is not drawn", name)
-            return None
-        v0, nv = int(model.mesh_vertadr[mid]), int(model.mesh_vertnum[mid])
-        f0, nf = int(model.mesh_faceadr[mid]), int(model.mesh_facenum[mid])
-        return np.array(model.mesh_vert[v0:v0 + nv]), np.array(model.mesh_face[f0:f0 + nf])
-
-    def _mujoco_model(self) -> Any:
-        if self._tried:
-            return self._model
-        self._tried = True
-        path = getattr(getattr(self.core, "scene", None), "model", None)
-        if getattr(self.core, "ENGINE", "") != "mujoco" or not path:
-            return None
-        try:
-            import mujoco
-
-            self._model = mujoco.MjModel.from_xml_path(str(path))
-        except Exception as exc:  # the core compiled it already; a failure here only loses the drawing
-            _log.warning("scene: cannot read %s for drawing: %s", path, exc)
-        return self._model
-
-
-_MJ_TYPES = {0: "plane", 2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder", 6: "box", 7: "mesh"}
-
-
-def _mujoco_geom(model: Any, g: int) -> dict:
-    """A MuJoCo geom in the core's geom description (full box edges, capsule/cylinder full lengths)."""
-    kind = _MJ_TYPES.get(int(model.geom_type[g]), "unknown")
-    size = [float(x) for x in model.geom_size[g]]
-    sizes = {"box": [2 * x for x in size], "sphere": size[:1], "capsule": [size[0], 2 * size[1]],
-             "cylinder": [size[0], 2 * size[1]], "plane": size[:2] if size[0] > 0 else []}
-    geom = {"name": model.geom(g).name, "type": kind, "size": tuple(sizes.get(kind, size)),
-            "rgba": tuple(float(x) for x in model.geom_rgba[g]), "pos": tuple(float(x) for x in model.geom_pos[g]),
-            "quat": tuple(float(x) for x in model.geom_quat[g])}
-    if kind == "mesh":
-        geom["mesh"] = model.mesh(int(model.geom_dataid[g])).name
-    return geom
 
 
 def _top_object(core: Any, body: str) -> str:
