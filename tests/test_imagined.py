@@ -15,8 +15,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from dynabrain.modules.basic import Sine
 from dynabrain.orchestrator import Batch, DynabrainError, Observer, World
 from dynabrain.orchestrator.brain.batch import BatchResult
-from dynabrain.orchestrator.brain.branch import BranchStatus
 from dynabrain.orchestrator.brain.plan import Action, search
+from dynabrain.orchestrator.kernel.branch import BranchStatus
 from dynabrain.orchestrator.logs.logger import McapLogger
 from dynabrain.orchestrator.logs.read import read_index
 from dynabrain.orchestrator.logs.verify import verify

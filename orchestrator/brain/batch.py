@@ -34,7 +34,7 @@ Backends, one API:
 - ``processes``: worker processes, each building a copy of the world with ``world.rebuild`` (set by
   `load_world`) or ``build=``; states cross as exported bytes; every core is used;
 - ``threads``: a world whose only module is a MuJoCo core, through ``mujoco.rollout`` on threads
-  (no Python per step; `rollout.RolloutBackend` says what it maps and refuses);
+  (no Python per step; `modules.mujoco.rollout_backend` says what it maps and refuses);
 - ``lockstep``: every branch in this process, advanced tick by tick together: the N physics of a tick
   in one call on threads (GIL released), each module stepped once for all branches through its
   batched step (`Module.step_batch`: numpy in the shipped modules; others branch by branch); any
@@ -64,12 +64,15 @@ from typing import Any
 import numpy as np
 
 from ..kernel import portable
+from ..kernel.branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 from ..kernel.errors import DynabrainError, WiringError
 from ..kernel.history import WorldState
 from ..kernel.observers import Imagined
+from ..kernel.plugins import resolve_class
 from ..kernel.world import World
-from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 
+THREADS_BACKEND = "dynabrain.modules.mujoco.rollout_backend:RolloutBackend"
+"""The ``threads`` backend, by class path (resolved when asked: the brain imports no shipped module)."""
 BACKENDS = ("auto", "serial", "processes", "ray", "threads", "lockstep")
 
 
@@ -254,8 +257,8 @@ class Batch:
                 from .lockstep import LockstepBackend
 
                 self._pool = LockstepBackend(self.world, self.workers, self._physics)
-            elif self.backend == "threads":  # a core-only MuJoCo world, through mujoco.rollout (brain/rollout.py)
-                from .rollout import RolloutBackend
+            elif self.backend == "threads":  # a core-only MuJoCo world, through mujoco.rollout (on MuJoCo's side)
+                RolloutBackend = resolve_class(THREADS_BACKEND, object)  # noqa: N806 (a class)
 
                 self._pool = RolloutBackend(self.world, self.workers)
             else:

@@ -44,12 +44,12 @@ from typing import Any
 
 import numpy as np
 
+from ..kernel.branch import BranchOutcome, BranchStatus, BranchTask, run_branch
 from ..kernel.errors import DynabrainError
 from ..kernel.history import WorldState
 from ..kernel.module import Module
 from ..kernel.structure import SAVE_STATE
 from ..kernel.world import World
-from .branch import BranchOutcome, BranchStatus, BranchTask, run_branch
 
 _EACH = Module.step_batch.__func__  # type: ignore[attr-defined]  # the default: each member alone
 PHYSICS = {"threads": None, "mjwarp": "dynabrain.modules.mujoco.warp_batch"}

@@ -17,9 +17,9 @@ from multiprocessing.connection import Connection, wait
 from subprocess import Popen, TimeoutExpired
 from typing import Any
 
+from ..kernel.branch import BranchOutcome, BranchStatus, BranchTask
 from ..kernel.errors import DynabrainError
 from ..kernel.workers import spawn_worker
-from .branch import BranchOutcome, BranchStatus, BranchTask
 from .messages import Init, InitFailed, Ready, Stop
 
 START_TIMEOUT_S = 120.0

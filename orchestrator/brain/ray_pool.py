@@ -17,8 +17,8 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from ..kernel.branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 from ..kernel.errors import DynabrainError
-from .branch import BranchOutcome, BranchRunner, BranchStatus, BranchTask
 
 CONNECT_TIMEOUT_S = 10
 IN_FLIGHT = 2

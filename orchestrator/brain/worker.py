@@ -18,7 +18,7 @@ import threading
 import traceback
 from multiprocessing.connection import Connection
 
-from .branch import BranchRunner, BranchTask
+from ..kernel.branch import BranchRunner, BranchTask
 from .messages import InitFailed, Ready, Stop
 
 

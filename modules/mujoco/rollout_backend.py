@@ -1,7 +1,9 @@
-"""The ``threads`` backend: the branches of a world whose only module is a MuJoCo core, rolled out by
-`mujoco.rollout` on threads of this process. MuJoCo steps in C with the GIL released: no Python per step.
+"""The ``threads`` backend of `Batch`: the branches of a world whose only module is a MuJoCo core,
+rolled out by `mujoco.rollout` on threads of this process (the brain names it by class path:
+`orchestrator.brain.batch`, so nothing above the modules imports MuJoCo). MuJoCo steps in C with the
+GIL released: no Python per step.
 
-A branch is `branch.run_branch` on the world, bit for bit, because each piece of it is made by the
+A branch is `kernel.branch.run_branch` on the world, bit for bit, because each piece of it is made by the
 core's own code or by the MuJoCo calls the core makes:
 
 - start and parameters: the start is imported into a scratch fork of the world and the parameters
@@ -48,12 +50,16 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from typing import Any
 
+import mujoco
 import numpy as np
 
-from ..kernel.errors import DynabrainError, WiringError
-from ..kernel.history import WorldState
-from ..kernel.world import World
-from .branch import BranchOutcome, BranchStatus, BranchTask, run_branch
+from dynabrain.orchestrator.kernel.branch import BranchOutcome, BranchStatus, BranchTask, run_branch
+from dynabrain.orchestrator.kernel.errors import DynabrainError, WiringError
+from dynabrain.orchestrator.kernel.history import WorldState
+from dynabrain.orchestrator.kernel.world import World
+
+from .core import STATE, MujocoCore
+from .scene import VEL_PREFIX
 
 # where the value of one column of a core port comes from (`_Sources`)
 CONST, QPOS, QVEL, SENS_PV, SENS_ACC, XPOS, XQUAT, UNKNOWN = range(8)
@@ -116,8 +122,6 @@ class _Sources:
     positions in the array)."""
 
     def __init__(self, model: Any, ports: _Ports, vel_prefix: str):
-        import mujoco
-
         self.model, self.ports = model, ports
         self.ids = {"body": {model.body(i).name: i for i in range(model.nbody)},
                     "joint": {model.joint(i).name: i for i in range(model.njnt)},
@@ -231,9 +235,6 @@ class RolloutBackend:
     of its own. Same interface as `pool.ProcessPool`: `map(tasks)` and `close()`."""
 
     def __init__(self, world: World, workers: int | None = None):
-        from dynabrain.modules.mujoco.core import STATE, MujocoCore
-        from dynabrain.modules.mujoco.scene import VEL_PREFIX
-
         self._core_state_spec, self._vel_prefix = STATE, VEL_PREFIX
         self._core_class = MujocoCore
         self.world = world
@@ -263,8 +264,6 @@ class RolloutBackend:
         if unknown:
             raise refuse(f"the core has input(s) {', '.join(unknown)}, which it cannot map onto mujoco.rollout; it "
                          f"drives {SUPPORTED_INPUTS}")
-        import mujoco
-
         if core.mj.model.opt.integrator == int(mujoco.mjtIntegrator.mjINT_RK4):
             raise refuse("the core's integrator is RK4, which the core's mj_step1/mj_step2 integrate as Euler and "
                          "mj_step does not; it supports Euler, implicit and implicitfast")
@@ -386,8 +385,6 @@ class RolloutBackend:
     def _prepare(self, base: _Base, task: BranchTask, columns: dict[str, _Column]) -> _Start | None:
         """The start of ``task`` with its parameters, set on the scratch fork by the core itself (on a copy
         of its model); None when a parameter is refused (`run_branch` then fails the branch)."""
-        import mujoco
-
         scratch = self._scratch
         assert scratch is not None
         try:
@@ -414,8 +411,6 @@ class RolloutBackend:
               columns: dict[str, _Column]) -> int:
         """Rollout's control_spec: each driven input block that is driven or not zero on the bus, and what
         rollout would otherwise reset (equality activations, mocap poses, user data) as constants."""
-        import mujoco
-
         s, spec = mujoco.mjtState, 0
         driven = {columns[n].block for n in task.inputs}
         for block, (bit, _, _, _) in sources.routes.items():
@@ -431,8 +426,6 @@ class RolloutBackend:
     def _job(self, task: BranchTask, start: _Start, ports: _Ports, columns: dict[str, _Column]) -> _Job:
         """The branch's input blocks per tick (the start's bus values, then its inputs in order, as
         `World.run` writes them) and rollout's controls from them (a tick's row held for its substeps)."""
-        import mujoco
-
         ticks, nsub, model = task.ticks, start.substeps, start.model
         blocks = {b: np.broadcast_to(start.bus[b], (ticks, ports.sizes[b])).copy() for b in ports.inputs}
         for name, values in task.inputs.items():
@@ -454,7 +447,6 @@ class RolloutBackend:
     def _thread_data(self, start: _Start) -> tuple[Any, Any, Any]:
         """This thread's rollout (no pool of its own), and its MjData for the start's structure (two: one
         rolls out, one computes kinematics)."""
-        import mujoco
         from mujoco import rollout
 
         local = self._local
@@ -466,8 +458,6 @@ class RolloutBackend:
         return local.rollout, *pair
 
     def _roll(self, job: _Job, columns: dict[str, _Column]) -> _Rolled:
-        import mujoco
-
         start, task = job.start, job.task
         runner, data, kin = self._thread_data(start)
         model, nsub, ticks = start.model, start.substeps, task.ticks
@@ -575,8 +565,6 @@ class _Gather:
 
     def _kinematics(self) -> tuple[np.ndarray, np.ndarray]:
         """(xpos, xquat) of every body after each tick: mj_kinematics of each tick's positions."""
-        import mujoco
-
         if self.poses is None:
             start, kin = self.job.start, self.kin
             model = start.model

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..kernel.errors import DynabrainError, ModuleError
-from ..kernel.world import World
+from .errors import DynabrainError, ModuleError
+from .world import World
 
 
 @dataclass(frozen=True)
