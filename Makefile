@@ -43,7 +43,10 @@ test: setup
 	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
 bench: setup
-	for b in $$(ls bench/*.py | grep -v timing.py); do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+	@all=$$(ls bench/*.py | grep -v timing.py); n=$$(echo "$$all" | wc -l); i=0; t0=$$(date +%s); \
+	for b in $$all; do i=$$((i + 1)); \
+	  echo "== [$$i/$$n] $$b ($$(( $$(date +%s) - t0 )) s so far)"; $(BIN)/python $$b || exit 1; done; \
+	echo "== $$n benchmarks in $$(( $$(date +%s) - t0 )) s"
 
 # The FMU masters bench/fmu_chain.py compares with (ecos and libcosim, from PyPI), and the TBB runtime
 # ecos's library needs (installed when missing and we are root; otherwise a note). Not needed by tests.

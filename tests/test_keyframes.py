@@ -294,3 +294,21 @@ def test_a_short_span_is_checked_in_the_generated_tick():
         w.tick()
     assert (err.value.module, err.value.tick, w.tick_count) == ("s", 3, 3)
     w.close()
+
+
+def test_history_says_how_many_states_it_keeps_when_a_module_cannot_roll_back():
+    from dynabrain.orchestrator.kernel.module import Capabilities, Module
+
+    class OneWay(Module):
+        CAPABILITIES = Capabilities(can_rollback=False)
+
+    w = World(history=100)
+    w.add_module(OneWay("once"))
+    w.tick(150)
+    text = w.history.describe()
+    assert text.startswith("102 of 102 states (a whole state every tick"), text
+    w.close()
+    plain = World(history=100)
+    plain.tick(150)
+    assert plain.history.describe().startswith("51 of 52 states (keyframes every 2 ticks)"), plain.history.describe()
+    plain.close()

@@ -100,6 +100,9 @@ def test_verify_passes_on_a_run_with_rollbacks_edits_and_modules(tmp_path):
     assert result.ok, result.divergence
     assert result.rows == rows and result.epochs == 4 and result.last_tick == 115
     assert result.ticks == rows - 2  # every row but the first and the one the restore brought back
+    seen: list[tuple[int, int]] = []
+    again = verify(path, allow_python=[Fuse.__module__], progress=lambda done, total: seen.append((done, total)))
+    assert again.ok and seen[-1] == (rows, rows)  # told as it goes, and at the end: every recorded row compared
 
 
 def test_verify_passes_on_a_cli_run_and_fails_on_a_doctored_file(tmp_path):

@@ -7,6 +7,7 @@ foreign file, an unknown signal, a recorded scenario that no longer loads).
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from collections.abc import Iterator
@@ -16,6 +17,7 @@ from typing import Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from ..kernel.errors import DynabrainError, ScenarioError
 
@@ -313,7 +315,12 @@ def _publish(log: Path, speed: float, listen: list[str] | None, connect: list[st
 def _verify(log: Path, allow_python: tuple[str, ...] = (), allow_version_mismatch: bool = False) -> None:
     from ..logs.verify import verify
 
-    result = verify(log, allow_python=allow_python, allow_version_mismatch=allow_version_mismatch)
+    quiet = logging.getLogger("dynabrain").getEffectiveLevel() >= logging.ERROR  # (dynabrain -q)
+    with Progress(TextColumn("verify"), BarColumn(), MofNCompleteColumn(), TextColumn("rows"), TimeRemainingColumn(),
+                  console=err, transient=True, disable=quiet) as bar:
+        task = bar.add_task("verify", total=None)
+        result = verify(log, allow_python=allow_python, allow_version_mismatch=allow_version_mismatch,
+                        progress=lambda done, total: bar.update(task, completed=done, total=total))
     out.print(f"verify: {result.versions}", markup=False)
     for first, last in result.gaps:
         out.print(f"verify: gap: the recording lacks ticks {first}..{last} (lost chunks); stepped through, not "

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import sys
 import tempfile
+import time
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Annotated, Any
@@ -30,6 +31,7 @@ from .common import console, err_console, fail_scenario
 from .examples import resolve_scenario
 from .log import VIEW_PORT, ViewOpt, ViewPortOpt, view_after_run
 
+_log = logging.getLogger("dynabrain.cli")
 app = typer.Typer(no_args_is_help=True, help="dynabrain: a co-simulation orchestrator a robot brain embeds.")
 _quiet = False
 """``-q`` before the command: no progress bar either."""
@@ -101,6 +103,7 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
     if not scenario.exists() and scenario.parent == Path("."):
         err_console.print(f"no file {scenario} here, and no shipped scenario of that name (`dynabrain examples` "
                           "lists them)", markup=False)
+    t0 = time.perf_counter()
     sc = _load(scenario, allow_python)
     if duration is not None:
         sc.duration_ns = _duration_option(duration)
@@ -108,6 +111,10 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
         world = sc.build()
     except ScenarioError as exc:
         fail_scenario(exc)
+    _log.info("%s: built in %.3f s", scenario, time.perf_counter() - t0)
+    _log.debug("world %s: step %s, schedule %s, %d signals, history %s", world.name,
+               format_duration(world.dt_ns), " -> ".join(world.schedule_order()), len(world.signals),
+               world.history.describe())
     from .log import attach_run_outputs
 
     temporary = view and log is None and not sc.model.log.mcap  # --view shows a log: a temporary one unless asked
@@ -131,7 +138,7 @@ def run(scenario: Path = typer.Argument(..., help="scenario YAML file, or the na
     finally:
         core = world.core
         world.close()  # also on Ctrl-C: observers (the log) are closed and stay readable
-    _summary(result, history)
+    _summary(result, history, quiet=_quiet)
     _engine_notes(core)
     if view:
         view_after_run(outputs.logger.path, view_port, temporary=temporary)
@@ -145,20 +152,25 @@ def _engine_notes(core: Any) -> None:
         err_console.print(line, markup=False)
 
 
-def _summary(result: RunResult, history: str) -> None:
-    console.print(f"[bold]{result.scenario}[/]: simulated {result.sim_time:.3f} s ({result.ticks} ticks) in "
-                  f"{result.wall_time:.3f} s wall, real-time factor {result.realtime_factor:.1f}")
-    console.print(f"history: {history}", markup=False)
+def _summary(result: RunResult, history: str, *, quiet: bool = False) -> None:
+    """The run's summary and its checks; ``quiet`` (``dynabrain -q``): only what went wrong, and the verdict."""
+    _log.debug("%s: %d expectations, %d ticks in %.3f s", result.scenario, len(result.expectations), result.ticks,
+               result.wall_time)
+    if not quiet:
+        console.print(f"[bold]{result.scenario}[/]: simulated {result.sim_time:.3f} s ({result.ticks} ticks) in "
+                      f"{result.wall_time:.3f} s wall, real-time factor {result.realtime_factor:.1f}")
+        console.print(f"history: {history}", markup=False)
     if result.error:
         console.print(f"[bold red]run stopped:[/] {escape(result.error)}")
     if result.ended:
         console.print(f"[bold]run ended:[/] {escape(result.ended)}")
-    if result.expectations:
+    shown = [e for e in result.expectations if not (quiet and e.passed)]
+    if shown:
         table = Table(show_header=True, header_style="bold")
         table.add_column("check")
         table.add_column("when")
         table.add_column("result")
-        for exp in result.expectations:
+        for exp in shown:
             when = f"t={exp.start * result.dt_ns / 1e9:g}s"
             if exp.end != exp.start:
                 when += f"..{exp.end * result.dt_ns / 1e9:g}s"
@@ -228,9 +240,41 @@ def _register_plugins() -> None:
 _register_plugins()
 
 
+def command() -> Any:
+    """The ``dynabrain`` command as click runs it, its help without type placeholders: a flag (``--help``
+    too) shows no ``<bool>``, a repeatable option or argument ``<text>`` (one value each, not
+    ``<list[str]>``), and an argument its name in capitals (``{LOG}``: required, not ``{log}``)."""
+    cmd = typer.main.get_command(app)
+    todo = [cmd]
+    while todo:
+        current = todo.pop()
+        todo += list(getattr(current, "commands", {}).values())
+        current.get_help_option = _plain_help_option(current.get_help_option)
+        for param in current.params:  # (typer's own click: told apart by kind, not class)
+            if param.param_type_name == "option" and getattr(param, "is_flag", False):
+                param.metavar = ""
+            elif param.param_type_name == "option" and param.multiple and param.metavar is None:
+                param.metavar = "<text>"
+            elif param.param_type_name == "argument" and param.name:
+                param.metavar = param.metavar or param.name.upper()
+                if param.nargs != 1:
+                    param.display_type_rich = lambda ctx: "<text>"
+    return cmd
+
+
+def _plain_help_option(make: Any) -> Any:
+    def help_option(ctx: Any) -> Any:
+        option = make(ctx)
+        if option is not None:
+            option.metavar = ""
+        return option
+
+    return help_option
+
+
 def main() -> None:
     try:
-        app()
+        command()(prog_name="dynabrain")
     except DynabrainError as exc:
         err_console.print(f"error: {exc}", markup=False)
         raise SystemExit(2) from None

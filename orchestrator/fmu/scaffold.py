@@ -57,8 +57,11 @@ int model_step(ModelData *m, double h) {{
 
 def new_fmu(name: str, parent: str | Path = ".") -> Path:
     """Create ``parent/name`` with fmu.yaml and ``name.c``; returns the folder."""
-    if not IDENT.match(name) or name in RESERVED:
+    if not IDENT.match(name):
         raise FMUError(f"FMU name {name!r} must be a C identifier (letters, digits, _; not starting with a digit)")
+    if name in RESERVED:
+        raise FMUError(f"FMU name {name!r} is reserved: the generated C code uses {', '.join(sorted(RESERVED))} "
+                       "itself (the model's state is m, its step h); choose another name")
     folder = Path(parent) / name
     if folder.exists() and any(folder.iterdir()):
         raise FMUError(f"{folder} exists and is not empty")

@@ -283,10 +283,13 @@ class History:
         return self._newest_bytes() * self._states()
 
     def describe(self) -> str:
-        per, most = self._newest_bytes(), self.states_when_full
-        keyframes = f" (keyframes every {self.every} ticks)" if self.every > 1 else ""
-        return (f"{self._states()} of {most} states{keyframes}, ~{per / 1024:.1f} KiB each, "
-                f"~{per * most / 2**20:.1f} MiB when full")
+        per, states = self._newest_bytes(), self._states()
+        # keyframes asked for, but a whole state at every tick: a module that cannot roll back (or an edit each tick)
+        whole = self.every > 1 and len(self._ring) > self.every and states == len(self._ring)
+        most = (self._ring.maxlen or 0) if whole else self.states_when_full
+        how = (" (a whole state every tick: a module cannot roll back, or every tick was edited)" if whole
+               else f" (keyframes every {self.every} ticks)" if self.every > 1 else "")
+        return f"{states} of {most} states{how}, ~{per / 1024:.1f} KiB each, ~{per * most / 2**20:.1f} MiB when full"
 
     def _states(self) -> int:
         return len(self._ring) if self.every == 1 else sum(type(e) is tuple for e in self._ring)

@@ -29,7 +29,7 @@ import functools
 import os
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -89,9 +89,10 @@ class _DivergedError(Exception):
 
 
 def verify(path: str | os.PathLike[str], *, allow_python: Sequence[str] = (),
-           allow_version_mismatch: bool = False) -> VerifyResult:
+           allow_version_mismatch: bool = False, progress: Callable[[int, int], None] | None = None) -> VerifyResult:
     """Re-simulate the run recorded in ``path`` and compare it tick by tick (see the module docstring).
     ``allow_python``: packages whose module classes the log may name (`Scenario.allow_python`).
+    ``progress(rows compared, rows recorded)`` is called every few hundred rows, and at the end.
     Raises `LogError` / `ScenarioError` when there is nothing to verify against, or a version mismatch."""
     path = os.fspath(path)
     index = read_index(path)
@@ -113,7 +114,7 @@ def verify(path: str | os.PathLike[str], *, allow_python: Sequence[str] = (),
     stated = check_versions(info, path, allow_version_mismatch)
     world = rebuild(info, path, allow_python)
     try:
-        result = _Replay(world, index, path, info.scenario_dir or ".").run()
+        result = _Replay(world, index, path, info.scenario_dir or ".", progress).run()
     finally:
         world.close()
     return dataclasses.replace(result, versions=stated)
@@ -176,8 +177,10 @@ def _still_there(original: str, text: str) -> bool:
 
 
 class _Replay:
-    def __init__(self, world: Any, index: LogIndex, path: str, base_dir: str):
+    def __init__(self, world: Any, index: LogIndex, path: str, base_dir: str,
+                 progress: Callable[[int, int], None] | None = None):
         self.world, self.view, self.index, self.base_dir = world, WorldView(world), index, base_dir
+        self._progress, self._rows_recorded = progress, len(index.keys.get(TOPIC_BUS, ()))
         self.gaps: list[tuple[int, int]] = []
         self._rows: Iterator = iter_bus(path, index, produced=True)
         self._peeked: BusRow | None = None
@@ -206,6 +209,8 @@ class _Replay:
                 self._step()
         except _DivergedError as exc:
             divergence = exc.divergence
+        if self._progress is not None:
+            self._progress(self.compared, self._rows_recorded)
         return VerifyResult(divergence is None, self.compared, self.stepped, self.world.tick_count, self.epoch,
                             time.perf_counter() - t0, divergence, gaps=tuple(self.gaps))
 
@@ -265,6 +270,8 @@ class _Replay:
         self._check_layout(codec)
         bus = self.view.bus()
         self.compared += 1
+        if self._progress is not None and self.compared % 256 == 0:
+            self._progress(self.compared, self._rows_recorded)
         if not np.array_equal(bus.view(np.int64), recorded.view(np.int64)):
             where = int(np.flatnonzero(bus.view(np.int64) != recorded.view(np.int64))[0])
             slot = min((s for s in codec.slots if s.offset <= where < s.offset + s.size), key=lambda s: s.size)
