@@ -24,6 +24,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
 from ..kernel.errors import DynabrainError, ScenarioError
+from ..kernel.extras import hint
 from ..kernel.units import format_duration
 from ..scenario.model import Scenario, load_scenario
 from ..scenario.runner import RunResult, run_scenario
@@ -275,6 +276,12 @@ def _plain_help_option(make: Any) -> Any:
 def main() -> None:
     try:
         command()(prog_name="dynabrain")
+    except ModuleNotFoundError as exc:  # a part of dynabrain that is not installed: name its extra
+        missing = hint(exc)
+        if missing is None:
+            raise
+        err_console.print(f"error: {missing}", markup=False)
+        raise SystemExit(2) from None
     except DynabrainError as exc:
         err_console.print(f"error: {exc}", markup=False)
         raise SystemExit(2) from None

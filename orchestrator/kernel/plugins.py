@@ -30,6 +30,7 @@ from functools import lru_cache
 from importlib import metadata as importlib_metadata
 
 from .errors import DynabrainError
+from .extras import hint
 from .module import Module
 from .suggest import did_you_mean
 
@@ -157,6 +158,9 @@ def resolve_class(spec: str, base: type = Module) -> type:
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
+        missing = hint(exc)
+        if missing is not None:
+            raise missing from None
         if exc.name and module_name.startswith(exc.name):
             raise DynabrainError(f"cannot import {module_name!r}: no module named {exc.name!r}") from None
         raise DynabrainError(f"importing {module_name!r} failed: {exc}") from exc

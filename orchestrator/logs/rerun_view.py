@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from ..kernel.errors import DynabrainError
+from ..kernel.extras import hint
 from .read import LogIndex, iter_bus, read_index
 from .scan import Message, scan
 from .scene import INFINITE_PLANE
@@ -49,8 +50,8 @@ def require_rerun() -> Any:
     """The ``rerun`` module, or an error naming the package to install."""
     try:
         import rerun
-    except ImportError:
-        raise DynabrainError("viewing in Rerun needs the rerun-sdk package: pip install rerun-sdk") from None
+    except ModuleNotFoundError as exc:
+        raise hint(exc) or DynabrainError(f"the Rerun viewer cannot be imported: {exc}") from None
     return rerun
 
 

@@ -16,6 +16,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..kernel.errors import DynabrainError
+from ..kernel.extras import hint
 from ..kernel.module import Module
 from ..kernel.plugins import ClassNotAllowedError, ClassPolicy, resolve_module_class
 from ..kernel.units import parse_duration_ns
@@ -106,5 +107,10 @@ def _make_fmu(name: str, fmu: str, base_dir: str, params: dict[str, Any], target
     try:
         return make_fmu_module(name, fmu, base_dir=base_dir, params=params, targets=targets, isolate=isolate,
                                call_timeout=timeout, start_time=start)
+    except ModuleNotFoundError as exc:  # the [fmu] extra is not installed
+        missing = hint(exc)
+        if missing is None:
+            raise
+        raise ModuleSpecError(f"module {name!r}: {missing}", "fmu") from None
     except DynabrainError as exc:
         raise ModuleSpecError(str(exc), "fmu" if isinstance(exc, FMUError) else "params") from None
