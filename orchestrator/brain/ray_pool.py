@@ -7,6 +7,14 @@ running, with Ray's reason, and is replaced. Ray is an optional extra: ``pip ins
 On other hosts: start a head (``ray start --head --port=6379``) and workers (``ray start
 --address=HEAD:6379``) with dynabrain installed and the scenario files at the same paths, then
 ``Batch(world, backend="ray", address="HEAD:6379")``.
+
+Token authentication (on by default since Ray 2.5x): the head makes a token (``ray get-auth-token``
+prints it); this process joins with it when it has one where Ray looks (``RAY_AUTH_TOKEN``,
+``RAY_AUTH_TOKEN_PATH``, ``~/.ray/auth_token``). Ray itself uses such a token unasked only for a local
+cluster it finds (``address="auto"``); for an explicit address dynabrain turns token mode on the same
+way (`maybe_enable_token_auth_if_token_available`, unless ``RAY_AUTH_MODE`` says otherwise). When
+joining fails, the error names the likely cause: nothing at the address, no token or another token,
+another Ray or Python version.
 """
 
 from __future__ import annotations
@@ -36,12 +44,15 @@ def _ray() -> Any:
 
 def connect(address: str | None) -> Any:
     """Ray, initialised: joined to the cluster at ``address``, or a local Ray when None (an existing
-    connection is kept). A cluster that cannot be reached is an error naming the address."""
+    connection is kept). A cluster that cannot be joined is an error naming the address and the likely
+    cause (see the module docstring)."""
     ray = _ray()
     if ray.is_initialized():
         return ray
+    token = False
     if address is not None and address != "auto":
         _probe(address)
+        token = _token_mode()
     try:
         if address is None:  # a local Ray: it advertises loopback (its servers still bind Ray's own way)
             ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False,
@@ -49,9 +60,37 @@ def connect(address: str | None) -> Any:
         else:
             ray.init(address=address, log_to_driver=False, configure_logging=False)
     except Exception as exc:
-        raise DynabrainError(f"batch backend 'ray': cannot reach the Ray cluster at {address!r}: "
-                             f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}") from None
+        raise DynabrainError(f"batch backend 'ray': cannot join the Ray cluster at {address!r}: "
+                             f"{_cause(exc, token)}") from None
     return ray
+
+
+def _token_mode() -> bool:
+    """Whether this process joins with a token: `RAY_AUTH_MODE`, else whether it has one (then Ray's token
+    mode is turned on for it, as Ray does for a local cluster)."""
+    try:
+        from ray._private.authentication.authentication_token_setup import (
+            maybe_enable_token_auth_if_token_available,
+        )
+    except ImportError:  # a Ray without token authentication
+        return False
+    return bool(maybe_enable_token_auth_if_token_available(warn_if_disabled=False))
+
+
+def _cause(exc: BaseException, token: bool) -> str:
+    """What most likely kept this process out of a cluster that answers at its address."""
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    said = f"{type(exc).__name__}: {text}"
+    if "version" in text.lower():
+        return f"another Ray or Python version runs there ({said})"
+    if isinstance(exc, ConnectionError) and not token:
+        return (f"it answers but let this process in on no token ({said}); Ray clusters ask for one by default: "
+                "give this process the head's (`ray get-auth-token` there) as RAY_AUTH_TOKEN, in the file "
+                "RAY_AUTH_TOKEN_PATH names, or in ~/.ray/auth_token")
+    if isinstance(exc, ConnectionError):
+        return (f"it answers but refused this process's token ({said}); is it the head's (RAY_AUTH_TOKEN, "
+                "RAY_AUTH_TOKEN_PATH, ~/.ray/auth_token)?")
+    return said
 
 
 def _probe(address: str) -> None:
