@@ -6,6 +6,7 @@ Only the cluster's own processes are stopped after (found by its temp folder): o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -18,7 +19,7 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("ray", reason="Ray (the ray extra) is not installed")
-import psutil  # noqa: E402  (Ray's own dependency)
+import psutil  # (Ray's own dependency)
 
 RAY = str(Path(sys.executable).with_name("ray"))
 DRIVER = """
@@ -52,12 +53,9 @@ def _stop(temp: str) -> None:
     """Kill this cluster's processes (their command lines name its temp folder), with their children."""
     for proc in psutil.process_iter(["cmdline"]):
         if any(temp in arg for arg in proc.info["cmdline"] or ()):
-            with_children = [*proc.children(recursive=True), proc]
-            for p in with_children:
-                try:
+            for p in [*proc.children(recursive=True), proc]:
+                with contextlib.suppress(psutil.Error):
                     p.kill()
-                except psutil.Error:
-                    pass
 
 
 @pytest.fixture(scope="module")
