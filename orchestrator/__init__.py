@@ -47,7 +47,15 @@ def __getattr__(name: str) -> object:
     room = _WHERE.get(name)
     if room is None:
         raise AttributeError(f"module 'dynabrain.orchestrator' has no attribute {name!r}")
-    value = getattr(_importlib.import_module(f"{__name__}.{room}"), name)
+    try:
+        value = getattr(_importlib.import_module(f"{__name__}.{room}"), name)
+    except ModuleNotFoundError as exc:  # a part whose extra is not installed: say which
+        from .kernel.extras import hint
+
+        missing = hint(exc)
+        if missing is None:
+            raise
+        raise missing from None
     globals()[name] = value
     return value
 
