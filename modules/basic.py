@@ -53,18 +53,25 @@ class Sine(Module):
 
 
 class Gain(Module):
-    """``y = k * u`` for an ``n``-vector (direct feedthrough)."""
+    """``y = k * u + offset`` for an ``n``-vector (``n`` 0: a scalar), direct feedthrough (an SSP's linear
+    transformation on a connection is one)."""
 
-    PARAMS = (Param("k", 1.0, runtime=True), Param("n", 1), Param("unit", "1"))
+    PARAMS = (Param("k", 1.0, runtime=True), Param("n", 1), Param("unit", "1"), Param("offset", 0.0, runtime=True))
+
+    def _shape(self) -> tuple[int, ...]:
+        return (self.params["n"],) if self.params["n"] else ()
 
     def inputs(self):
-        return (Port("u", (self.params["n"],), self.params["unit"]),)
+        return (Port("u", self._shape(), self.params["unit"]),)
 
     def outputs(self):
-        return (Port("y", (self.params["n"],), self.params["unit"]),)
+        return (Port("y", self._shape(), self.params["unit"]),)
 
     def step(self, t_ns, dt_ns):
-        np.multiply(self.inp["u"], self.params["k"], out=self.out["y"])
+        p = self.params
+        np.multiply(self.inp["u"], p["k"], out=self.out["y"])
+        if p["offset"]:
+            self.out["y"] += p["offset"]
 
 
 class Integrator(Module):

@@ -83,6 +83,7 @@ def make_ssp(path: Path, system: str, files: dict[str, bytes], experiment: str =
            'xmlns:ssd="http://ssp-standard.org/SSP1/SystemStructureDescription" '
            'xmlns:ssc="http://ssp-standard.org/SSP1/SystemStructureCommon" '
            'xmlns:ssv="http://ssp-standard.org/SSP1/SystemStructureParameterValues" '
+           'xmlns:ssm="http://ssp-standard.org/SSP1/SystemStructureParameterMapping" '
            f'name="foreign" version="1.0">{system}{experiment}</ssd:SystemStructureDescription>')
     with zipfile.ZipFile(path, "w") as zf:
         zf.writestr(SSD, ssd)
@@ -148,7 +149,7 @@ def test_a_foreign_ssp_imports_with_ssv_files_system_bindings_and_its_step(passt
         world.close()
 
 
-@pytest.mark.parametrize("case", ["not a zip", "no ssd", "unknown connector", "not an FMU", "nested system",
+@pytest.mark.parametrize("case", ["not a zip", "no ssd", "unknown connector", "not an FMU", "two drivers",
                                   "unit conversion", "missing ssv"])
 def test_bad_ssps_name_the_file_and_the_element(case, passthrough, tmp_path):
     path = tmp_path / "bad.ssp"
@@ -157,7 +158,7 @@ def test_bad_ssps_name_the_file_and_the_element(case, passthrough, tmp_path):
     expected = {"not a zip": "not a zip file", "no ssd": f"no {SSD}",
                 "unknown connector": "connection 1 (a.y[1] -> b.nope): component 'b' has no connector 'nope'",
                 "not an FMU": "component 'b': type 'application/x-ssp-package' is not an FMU",
-                "nested system": "element 'inner' is a nested system",
+                "two drivers": "a.y[1] and b.y[1] both drive one chain of connections",
                 "unit conversion": "component 'a': connector 'y[1]' is in 'mm'",
                 "missing ssv": "names a file the archive does not hold"}[case]
     if case == "not a zip":
@@ -169,8 +170,10 @@ def test_bad_ssps_name_the_file_and_the_element(case, passthrough, tmp_path):
         make_ssp(path, system(component("a") + component("b"), link.format("nope")), fmu)
     elif case == "not an FMU":
         make_ssp(path, system(component("a") + component("b", ctype="application/x-ssp-package")), fmu)
-    elif case == "nested system":
-        make_ssp(path, system(component("a") + system(component("c")).replace('name="root"', 'name="inner"')), fmu)
+    elif case == "two drivers":
+        both = ('<ssd:Connection startElement="a" startConnector="y[1]" endElement="c" endConnector="u[1]"/>'
+                '<ssd:Connection startElement="b" startConnector="y[1]" endElement="c" endConnector="u[1]"/>')
+        make_ssp(path, system(component("a") + component("b") + component("c"), both), fmu)
     elif case == "unit conversion":
         unit = '<ssd:Connector name="gain" kind="parameter"><ssc:Real unit="mm"/></ssd:Connector>'
         make_ssp(path, system(component("a", unit).replace('name="y[1]" kind="output"/>',
@@ -212,3 +215,76 @@ def test_the_commands(exported, tmp_path):
     (tmp_path / "junk.ssp").write_text("junk")
     out = runner.invoke(app, ["ssp", "import", str(tmp_path / "junk.ssp")])
     assert out.exit_code == 2 and "junk.ssp: not a zip file" in out.output
+
+
+def test_nested_systems_are_made_flat_and_the_systems_own_connectors_carry_values(passthrough, tmp_path):
+    """A nested system's component becomes module ``inner_c``; a chain through the nested system's input
+    connects ``a`` to it; the whole system's parameter connector ``g`` (bound to 4) drives ``a.gain``."""
+    inner = ('<ssd:System name="inner"><ssd:Connectors><ssd:Connector name="in" kind="input"/></ssd:Connectors>'
+             f'<ssd:Elements>{component("c")}</ssd:Elements><ssd:Connections><ssd:Connection startElement="" '
+             'startConnector="in" endElement="c" endConnector="u[1]"/></ssd:Connections></ssd:System>')
+    links = ('<ssd:Connection startElement="a" startConnector="y[1]" endElement="inner" endConnector="in"/>'
+             '<ssd:Connection startElement="" startConnector="g" endElement="a" endConnector="gain"/>')
+    gain = '<ssd:Connector name="gain" kind="parameter"/>'
+    bound = ('<ssd:ParameterBindings><ssd:ParameterBinding><ssd:ParameterValues>'
+             f'{params(("g", "Real", "4.0"))}</ssd:ParameterValues></ssd:ParameterBinding></ssd:ParameterBindings>')
+    root = system(component("a", gain) + inner, links, bound).replace(
+        '<ssd:System name="root">', '<ssd:System name="root"><ssd:Connectors><ssd:Connector name="g" '
+        'kind="parameter"/></ssd:Connectors>', 1)
+    path = make_ssp(tmp_path / "nested.ssp", root, {"resources/pass.fmu": passthrough})
+    result = import_ssp(path, tmp_path / "nested.yaml")
+    sc = result.scenario
+    assert sorted(m["name"] for m in sc["modules"]) == ["a", "inner_c"]
+    assert sc["connect"] == [["a.y[1]", "inner_c.u[1]"]]
+    assert next(m for m in sc["modules"] if m["name"] == "a")["params"] == {"gain": 4.0}
+    world = load_world(result.path)
+    try:
+        world.set("a.u[1]", 1.0)
+        world.tick(2)
+        assert world.get("inner_c.u[1]") == 4.0
+    finally:
+        world.close()
+
+
+def test_an_osp_step_and_a_loop_whose_fmus_declare_no_order(passthrough, tmp_path):
+    """libcosim's step annotation is read; a loop of feedthrough FMUs is broken by delaying the connection
+    that goes back in the SSP's order (said in the notes), or iterated to agreement when asked."""
+    links = ('<ssd:Connection startElement="a" startConnector="y[1]" endElement="b" endConnector="u[1]"/>'
+             '<ssd:Connection startElement="b" startConnector="y[1]" endElement="a" endConnector="u[1]"/>')
+    osp = ('<ssd:Annotations><ssc:Annotation type="com.opensimulationplatform"><osp:FixedStepAlgorithm '
+           'xmlns:osp="http://opensimulationplatform.com/SSP/OSPAnnotations" baseStepSize="0.0005"/>'
+           '</ssc:Annotation></ssd:Annotations>')
+    path = make_ssp(tmp_path / "loop.ssp", system(component("a") + component("b"), links, "", osp),
+                    {"resources/pass.fmu": passthrough}, '<ssd:DefaultExperiment startTime="0" stopTime="0.01"/>')
+    result = import_ssp(path, tmp_path / "loop.yaml")
+    assert result.scenario["world"]["step"] == "500us"
+    assert result.scenario["connect"] == [["a.y[1]", "b.u[1]"], ["b.y[1]", "a.u[1]", {"delay": True}]]
+    assert any("b.y[1] -> a.u[1] is delayed to break a loop" in n for n in result.notes)
+    assert any("OSP FixedStepAlgorithm" in n for n in result.notes)
+    load_world(result.path).close()
+    iterated = import_ssp(path, tmp_path / "loop_it.yaml", loops="iterate")
+    assert iterated.scenario["iterate"] == [{"name": "ssp_loop", "modules": ["a", "b"]}]
+    assert all(len(c) == 2 for c in iterated.scenario["connect"])
+    load_world(iterated.path).close()
+
+
+def test_a_linear_transformation_and_a_parameter_mapping(passthrough, tmp_path):
+    link = ('<ssd:Connection startElement="a" startConnector="y[1]" endElement="b" endConnector="u[1]">'
+            '<ssc:LinearTransformation factor="2.0" offset="1.0"/></ssd:Connection>')
+    gain = '<ssd:Connector name="gain" kind="parameter"/>'
+    mapped = ('<ssd:ParameterBindings><ssd:ParameterBinding><ssd:ParameterValues>'
+              f'{params(("k", "Real", "3.0"))}</ssd:ParameterValues><ssd:ParameterMapping><ssm:ParameterMapping>'
+              '<ssm:MappingEntry source="k" target="a.gain"/><ssm:MappingEntry source="k" target="b.gain">'
+              '<ssc:LinearTransformation factor="2.0" offset="0.5"/></ssm:MappingEntry></ssm:ParameterMapping>'
+              '</ssd:ParameterMapping></ssd:ParameterBinding></ssd:ParameterBindings>')
+    path = make_ssp(tmp_path / "lt.ssp", system(component("a", gain) + component("b", gain), link, mapped),
+                    {"resources/pass.fmu": passthrough})
+    result = import_ssp(path, tmp_path / "lt.yaml")
+    assert [m.get("params") for m in result.scenario["modules"][:2]] == [{"gain": 3.0}, {"gain": 6.5}], result.notes
+    world = load_world(result.path)
+    try:
+        world.set("a.u[1]", 1.0)
+        world.tick(2)
+        assert world.get("b.u[1]") == 2.0 * 3.0 + 1.0  # a.y = 3 * 1, then the transformation
+    finally:
+        world.close()

@@ -11,16 +11,26 @@ or at the system with ``component.`` names) the module's ``params``, and the def
 scenario whose modules all are FMUs.
 
 The structure is read by FMPy's SSP reader (`fmpy.ssp.ssd.read_ssd`, which validates an SSD 1.x
-against the SSP 1.0 schema it ships). What that reader leaves out is read here from the same XML, no
-more: the default experiment, the step (OMSimulator's ``FixedStepMaster`` annotation, or dynabrain's
-own), connector units, transformations on connections and a component's ``implementation``.
+against the SSP 1.0 schema it ships; an SSD other tools wrote that the schema refuses is read as it is,
+the schema's words kept in the notes). What that reader leaves out is read here from the same XML:
+the default experiment, the step (dynabrain's annotation, OSP's ``FixedStepAlgorithm`` of libcosim,
+OMSimulator's ``FixedStepMaster``), connector units, transformations on connections, inline parameter
+mappings and a component's ``implementation``.
+
+Nested systems are made flat (component ``c`` of system ``s`` is module ``s_c``), and chains of
+connections through systems' own connectors are followed to their component ends (`ssp_wiring`): the
+whole system's parameter connectors give their bound values to the parameters they drive, its inputs
+their values at t=0 (an event), and what stays free is said in the notes. A linear transformation on a
+connection becomes a module between its ends (`modules.basic.Gain` with an offset); parameter mappings
+(``.ssm``, or inline) rename and transform values. A loop of feedthrough FMUs that declare no
+dependencies is broken by delaying the connection that goes back in the SSP's order, or iterated to
+agreement (``loops="iterate"``); either is noted.
 
 What dynabrain cannot run is refused, naming the file and the element: a component that is not an
-FMU (a nested SSD or SSP), a nested system, signal dictionaries, parameter mappings, unit conversions
-(a connection between different units, a parameter value or a connector in another unit than the
-FMU's variable, a transformation on a connection), connections to the system's own connectors,
-enumeration values, start values of inputs. Parameter names that match no variable are ignored, as
-SSP says, and listed in the import's notes.
+FMU (a nested SSD or SSP), a Model Exchange FMU, signal dictionaries, unit conversions (a connection
+between different units, a parameter value or a connector in another unit than the FMU's variable),
+transformations other than linear ones, two outputs driving one chain, enumeration values, start values
+of inputs. Parameter names that match no variable are ignored, as SSP says, and listed in the notes.
 
 Written SSPs are SSD version 1.0 (the namespaces ``http://ssp-standard.org/SSP1/...``, which SSP 2.0
 keeps): everything written is in SSP 1.0, SSP 2.0 readers read 1.0 files, and FMPy's reader and
@@ -32,8 +42,10 @@ module periods, ``isolate``, ``delay`` on a connection) goes into annotations of
 
 from __future__ import annotations
 
+import copy
 import os
 import posixpath
+import re
 import shutil
 import zipfile
 from dataclasses import dataclass
@@ -44,11 +56,13 @@ from urllib.parse import unquote, urlsplit
 
 from ..kernel.errors import DynabrainError, Problem
 from ..kernel.units import NS_PER_S, parse_duration_ns, same_unit
+from .ssp_wiring import Chain, Edge, Node, backward_edges, chains, signal
 
 SSD = "SystemStructure.ssd"
 NS = {"ssd": "http://ssp-standard.org/SSP1/SystemStructureDescription",
       "ssc": "http://ssp-standard.org/SSP1/SystemStructureCommon",
       "ssv": "http://ssp-standard.org/SSP1/SystemStructureParameterValues",
+      "ssm": "http://ssp-standard.org/SSP1/SystemStructureParameterMapping",
       "db": "urn:dynabrain:ssp:1"}
 ANNOTATION = "org.dynabrain.scenario"
 """The type of dynabrain's annotations (world, module and connection settings SSP has no words for)."""
@@ -97,15 +111,17 @@ class SspExport:
 
 # -- reading -------------------------------------------------------------------------------------------
 def import_ssp(ssp: str | os.PathLike[str], scenario: str | os.PathLike[str] | None = None, *,
-               fmu_dir: str | os.PathLike[str] | None = None, check: bool = True) -> SspImport:
+               fmu_dir: str | os.PathLike[str] | None = None, check: bool = True, loops: str = "delay") -> SspImport:
     """Write the scenario of the SSP at ``ssp`` to ``scenario`` (default: beside the SSP, ``.yaml``)
     and extract its FMUs to ``fmu_dir`` (default: a folder named after the scenario, beside it).
     ``check``: build the scenario once (every FMU loaded, every connection checked) and raise if it
-    does not validate. Raises `SSPError` naming the file and each element at fault."""
+    does not validate. ``loops``: how a loop of feedthrough FMUs that declare no dependencies is broken:
+    ``"delay"`` (a connection of it delayed) or ``"iterate"`` (iterated to agreement each step). Raises
+    `SSPError` naming the file and each element at fault."""
     ssp = Path(ssp)
     out = Path(scenario) if scenario is not None else ssp.with_suffix(".yaml")
     folder = Path(fmu_dir) if fmu_dir is not None else out.with_suffix("")
-    result = read_ssp(ssp, folder, scenario_dir=out.parent)
+    result = read_ssp(ssp, folder, scenario_dir=out.parent, loops=loops)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(_yaml(result.scenario, ssp, result.notes))
     result = SspImport(result.scenario, out, result.fmus, result.notes)
@@ -121,10 +137,12 @@ def import_ssp(ssp: str | os.PathLike[str], scenario: str | os.PathLike[str] | N
 
 
 def read_ssp(ssp: str | os.PathLike[str], fmu_dir: str | os.PathLike[str], *,
-             scenario_dir: str | os.PathLike[str] = ".") -> SspImport:
+             scenario_dir: str | os.PathLike[str] = ".", loops: str = "delay") -> SspImport:
     """The scenario of the SSP at ``ssp`` as plain data (not written), its FMUs extracted to
     ``fmu_dir`` and named relative to ``scenario_dir``. Raises `SSPError`."""
-    return _Reader(Path(ssp), Path(fmu_dir), Path(scenario_dir)).read()
+    if loops not in ("delay", "iterate"):
+        raise SSPError([f"{ssp}: loops={loops!r}: 'delay' or 'iterate'"])
+    return _Reader(Path(ssp), Path(fmu_dir), Path(scenario_dir), loops).read()
 
 
 @dataclass
@@ -140,12 +158,17 @@ class _Component:
 
 
 class _Reader:
-    def __init__(self, ssp: Path, fmu_dir: Path, scenario_dir: Path):
-        self.ssp, self.fmu_dir, self.scenario_dir = ssp, fmu_dir, scenario_dir
+    def __init__(self, ssp: Path, fmu_dir: Path, scenario_dir: Path, loops: str = "delay"):
+        self.ssp, self.fmu_dir, self.scenario_dir, self.loop_mode = ssp, fmu_dir, scenario_dir, loops
         self.label = str(ssp)
         self.problems: list[str] = []
         self.notes: list[str] = []
         self.fmus: list[Path] = []
+        self.connectors: dict[tuple[str, ...], dict[str, str]] = {}  # each system's own connectors -> kind
+        self.locals: dict[tuple[str, ...], dict[str, tuple[str, Any]]] = {}  # each system's elements
+        self.values: dict[Node, Any] = {}  # values bound to systems' own connectors
+        self.maps: list[dict[str, Any]] = []  # modules made for linear transformations on connections
+        self.loops: list[dict[str, Any]] = []  # `iterate:` entries (loops="iterate")
 
     def fail(self, message: str) -> None:
         self.problems.append(f"{self.label}: {message}")
@@ -154,26 +177,11 @@ class _Reader:
         names, root = self._open()
         ssd = self._read_ssd(root)
         system, xml_system = ssd.system, root.find("ssd:System", NS)
-        where = f"system {system.name!r}"
-        self._unsupported(system, where)
         components: dict[str, _Component] = {}
-        xml_components = {c.get("name"): c for c in xml_system.iterfind("ssd:Elements/ssd:Component", NS)}
-        for element in system.elements:
-            kind = type(element).__name__
-            if kind != "Component":
-                self.fail(f"{where}: element {element.name!r} is a {'nested system' if kind == 'System' else kind}; "
-                          "dynabrain imports a system of FMU components only")
-                continue
-            if element.name in components:
-                self.fail(f"{where}: two elements are named {element.name!r}")
-                continue
-            comp = self._component(element, xml_components[element.name], names)
-            if comp is not None:
-                components[comp.name] = comp
-        for comp in components.values():
-            self._bindings(_element_bindings(system, comp.name), comp, components, where)
-        self._bindings(system.parameterBindings, None, components, where)
-        connect = self._connections(system, xml_system, components)
+        edges: list[Edge] = []
+        self._system(system, xml_system, (), components, edges, names)
+        connect, events = self._wire(edges, components)
+        connect = self._break_loops(connect, components)
         world = self._world(root, xml_system, components)
         if self.problems:
             raise SSPError(self.problems)
@@ -184,8 +192,84 @@ class _Reader:
             modules.append(comp.entry)
         scenario: dict[str, Any] = {"name": root.get("name") or system.name or self.ssp.stem,
                                     "description": f"imported from {self.ssp.name} (SSP, SSD {root.get('version')})"}
-        scenario.update({"world": world, "modules": modules, "connect": connect})
+        scenario.update({"world": world, "modules": [*modules, *self.maps], "connect": connect})
+        if self.loops:
+            scenario["iterate"] = self.loops
+        if events:
+            scenario["events"] = events
         return SspImport(scenario, None, tuple(self.fmus), tuple(self.notes))
+
+    # -- systems, nested ones made flat
+    def _system(self, system: Any, xml: Any, path: tuple[str, ...], components: dict[str, _Component],
+                edges: list[Edge], names: set[str]) -> None:
+        """Read ``system`` (at ``path``; the whole one at ``()``): its components (a nested system's named
+        ``system_component``), its bindings and its connections (as `Edge` s between connectors)."""
+        where = f"system {'.'.join(path) or system.name!r}" if path else f"system {system.name!r}"
+        if system.signalDictionaries:
+            self.fail(f"{where}: signal dictionaries ({', '.join(repr(d.name) for d in system.signalDictionaries)}) "
+                      "are not supported")
+        self.connectors[path] = {c.name: c.kind for c in system.connectors}
+        local: dict[str, tuple[str, Any]] = {}
+        self.locals[path] = local
+        xml_elements = {e.get("name"): e for e in xml.iterfind("ssd:Elements/*", NS)}
+        for element in system.elements:
+            kind = type(element).__name__
+            if element.name in local:
+                self.fail(f"{where}: two elements are named {element.name!r}")
+            elif kind == "System":
+                local[element.name] = ("s", (*path, element.name))
+                self._system(element, xml_elements[element.name], (*path, element.name), components, edges, names)
+            elif kind != "Component":
+                self.fail(f"{where}: element {element.name!r} is a {kind}; dynabrain imports systems of FMU components")
+            else:
+                flat = "_".join((*path, element.name))
+                comp = self._component(element, xml_elements[element.name], names, flat)
+                if comp is not None and flat in components:
+                    self.fail(f"{where}: component {element.name!r} would be module {flat!r}, which is taken")
+                elif comp is not None:
+                    components[flat] = comp
+                    local[element.name] = ("c", flat)
+        for name, (kind, flat) in local.items():
+            if kind == "c":
+                self._bindings(_element_bindings(system, name), components[flat], path, components,
+                               xml_elements[name].findall("ssd:ParameterBindings/ssd:ParameterBinding", NS))
+        self._bindings(system.parameterBindings, None, path, components,
+                       xml.findall("ssd:ParameterBindings/ssd:ParameterBinding", NS))
+        xml_connections = list(xml.iterfind("ssd:Connections/ssd:Connection", NS))
+        for i, (conn, cx) in enumerate(zip(system.connections, xml_connections, strict=True), 1):
+            ends = [(conn.startElement, conn.startConnector), (conn.endElement, conn.endConnector)]
+            label = (f"{where}: connection {i} (" + " -> ".join(f"{e or system.name}.{c}" for e, c in ends) + ")")
+            found = [self._node(path, components, element, connector, label) for element, connector in ends]
+            if None not in found:
+                edges.append(Edge(found[0], found[1], cx, label))  # type: ignore[arg-type]
+
+    def _node(self, path: tuple[str, ...], components: dict[str, _Component], element: str | None,
+              connector: str, label: str) -> Node | None:
+        """The connector ``element.connector`` of the system at ``path`` (its own when ``element`` is empty)."""
+        if not element:
+            return self._system_connector(path, connector, label)
+        ref = self.locals[path].get(element)
+        if ref is None:
+            if not any(f"component {element!r}" in p for p in self.problems):
+                known = ", ".join(self.locals[path]) or "none"
+                self.fail(f"{label}: no element {element!r} (elements: {known})")
+            return None
+        if ref[0] == "s":
+            return self._system_connector(ref[1], connector, label)
+        comp = components[ref[1]]
+        if connector not in comp.connectors:
+            known = ", ".join(comp.connectors) or "none"
+            self.fail(f"{label}: component {element!r} has no connector {connector!r} (its connectors: {known})")
+            return None
+        return ("c", (ref[1],), connector) if connector in comp.variables else None
+
+    def _system_connector(self, path: tuple[str, ...], connector: str, label: str) -> Node | None:
+        if connector not in self.connectors[path]:
+            known = ", ".join(self.connectors[path]) or "none"
+            self.fail(f"{label}: system {'.'.join(path) or 'the system'!r} has no connector {connector!r} "
+                      f"(its connectors: {known})")
+            return None
+        return ("j", path, connector)
 
     # -- the archive, the XML and FMPy's reading of it
     def _open(self) -> tuple[set[str], Any]:
@@ -230,18 +314,19 @@ class _Reader:
         except KeyError as exc:  # a file the SSD names is not in the archive
             raise SSPError([f"{self.label}: {SSD} names a file the archive does not hold: {exc.args[0]}"]) from None
         except Exception as exc:  # FMPy raises plain Exceptions (schema), lxml its syntax errors (.ssv)
+            if major != "1" or "Failed to validate" not in str(exc):
+                raise SSPError([f"{self.label}: {exc}"]) from None
+            # other tools write what the SSP 1.0 schema does not allow (an .ssv of version 2.0, OMSimulator's
+            # own attributes): read it as it is, what the schema says kept in the notes
+            said = " ".join(str(exc).split())
+            self.notes.append(f"{SSD} does not validate against the SSP 1.0 schema, read as it is: {said[:300]}")
+        try:
+            return read_ssd(str(self.ssp), validate=False)
+        except Exception as exc:
             raise SSPError([f"{self.label}: {exc}"]) from None
 
-    def _unsupported(self, system: Any, where: str) -> None:
-        if system.signalDictionaries:
-            names = ", ".join(repr(d.name) for d in system.signalDictionaries)
-            self.fail(f"{where}: signal dictionaries ({names}) are not supported")
-        if system.connectors:
-            self.notes.append(f"{where}: its own connectors ({', '.join(c.name for c in system.connectors)}) "
-                              "are an interface to an enclosing system; nothing drives them here")
-
     # -- components
-    def _component(self, element: Any, xml: Any, names: set[str]) -> _Component | None:
+    def _component(self, element: Any, xml: Any, names: set[str], flat: str) -> _Component | None:
         where = f"component {element.name!r}"
         ctype = element.type or FMU_TYPE
         before = len(self.problems)
@@ -271,9 +356,9 @@ class _Reader:
         for conn in element.connectors:
             connectors[conn.name] = conn.kind
             self._connector(where, conn, xml_connectors.get(conn.name), variables, skipped, info)
-        entry: dict[str, Any] = {"name": element.name, "fmu": _relative(path, self.scenario_dir)}
+        entry: dict[str, Any] = {"name": flat, "fmu": _relative(path, self.scenario_dir)}
         entry.update(_module_annotation(xml, self.label))
-        return _Component(element.name, info, variables, connectors, {}, entry)
+        return _Component(flat, info, variables, connectors, {}, entry)
 
     def _member(self, source: str | None, where: str, names: set[str]) -> str | None:
         if not source:
@@ -321,34 +406,101 @@ class _Reader:
                       "dynabrain does not do")
 
     # -- parameters
-    def _bindings(self, bindings: list[Any], comp: _Component | None, components: dict[str, _Component],
-                  where: str) -> None:
-        """Apply ``bindings`` of ``comp`` (or of the system when None: names are ``component.variable``)
-        in order, a later value replacing an earlier one."""
-        owner = f"component {comp.name!r}" if comp is not None else where
-        for binding in bindings:
+    def _bindings(self, bindings: list[Any], comp: _Component | None, path: tuple[str, ...],
+                  components: dict[str, _Component], xml: list[Any]) -> None:
+        """Apply ``bindings`` of ``comp`` (or of the system at ``path`` when None: names are
+        ``component.variable``, ``system.component.variable`` or the system's own connectors) in order, a
+        later value replacing an earlier one."""
+        owner = f"component {comp.name!r}" if comp is not None else f"system {'.'.join(path) or 'the system'!r}"
+        for binding, xml_binding in zip(bindings, [*xml, *[None] * len(bindings)], strict=False):
             label = f"{owner}: parameter binding {binding.source or '(inline)'}"
             if (binding.type or SSV_TYPE) != SSV_TYPE:
                 self.fail(f"{label}: type {binding.type!r} is not an SSV parameter set ({SSV_TYPE})")
                 continue
-            if binding.parameterMapping:
-                self.fail(f"{label}: parameter mappings (.ssm) are not supported")
-                continue
             if binding.sourceBase == "component":
                 self.fail(f"{label}: sourceBase 'component' (a file inside the FMU) is not supported")
                 continue
+            mapping = self._mapping(binding.parameterMapping or (), label, xml_binding)
             for pset in binding.parameterValues:
-                for p in pset.parameters:
-                    name = (binding.prefix or "") + p.name
-                    target, rest = comp, name
-                    if comp is None:
-                        head, _, rest = name.partition(".")
-                        target = components.get(head) if rest else None
+                for p, name in ((q, t) for src in pset.parameters for q, t in self._mapped(src, mapping, label)):
+                    name = (binding.prefix or "") + name
+                    target, rest = (comp, name) if comp is not None else self._resolve(path, name, components)
+                    if isinstance(target, tuple):  # a system's own connector: its value drives what it is joined to
+                        value = self._plain(p, f"{label}: parameter {name!r}")
+                        if value is not None:
+                            self.values[target] = value
+                        continue
                     if target is None or rest not in target.variables:
                         self.notes.append(f"{label}: parameter {name!r} matches no variable and is ignored (as SSP "
                                           "says)")
                         continue
                     self._param(target, rest, p, f"{label}: parameter {name!r}")
+
+    def _mapping(self, mappings: Any, label: str, xml: Any) -> dict[str, list[tuple[str, Any]]]:
+        """A binding's parameter mapping (an ``.ssm`` file, or inline: FMPy reads only the file's, so the
+        inline one is read here): source name -> [(target name, transformation)]."""
+        out: dict[str, list[tuple[str, Any]]] = {}
+        entries = [e for mapping in mappings for e in mapping.mappingEntries]
+        if xml is not None and not entries:
+            entries = [_InlineEntry(e) for e in xml.iterfind("ssd:ParameterMapping/ssm:ParameterMapping/"
+                                                              "ssm:MappingEntry", NS)]
+        for entry in entries:
+            t = entry.transformation
+            kind = type(t).__name__ if not hasattr(t, "tag") else _local_name(t)
+            if t is not None and not isinstance(t, _Linear) and kind != "LinearTransformation":
+                self.fail(f"{label}: mapping {entry.source!r} -> {entry.target!r}: a {kind} (dynabrain maps values "
+                          "as they are or through a linear transformation)")
+                continue
+            out.setdefault(entry.source, []).append((entry.target, t))
+        return out
+
+    def _mapped(self, p: Any, mapping: dict[str, list[tuple[str, Any]]], label: str) -> list[tuple[Any, str]]:
+        """The parameter ``p`` under its target names (itself when the mapping does not name it), a linear
+        transformation applied to its value."""
+        if p.name not in mapping:
+            return [(p, p.name)]
+        out = []
+        for target, t in mapping[p.name]:
+            q = p
+            if t is not None:
+                try:
+                    value = float(p.value) * float(t.factor or 1) + float(t.offset or 0)
+                except (TypeError, ValueError):
+                    self.fail(f"{label}: mapping {p.name!r} -> {target!r}: {p.value!r} is not a number to transform")
+                    continue
+                q = copy.copy(p)
+                q.value = repr(value)
+            out.append((q, target))
+        return out
+
+    def _resolve(self, path: tuple[str, ...], name: str,
+                 components: dict[str, _Component]) -> tuple[_Component | Node | None, str]:
+        """What ``name`` in a binding of the system at ``path`` names: (a component, its variable), (a
+        system's own connector, ""), or (None, name)."""
+        head, dot, rest = name.partition(".")
+        ref = self.locals.get(path, {}).get(head) if dot else None
+        if ref is not None and ref[0] == "c":
+            return components[ref[1]], rest
+        if ref is not None:
+            return self._resolve(ref[1], rest, components)
+        if name in self.connectors.get(path, {}):
+            return ("j", path, name), ""
+        return None, name
+
+    def _plain(self, p: Any, label: str) -> Any:
+        """A parameter value as plain data (for a system's own connector: no FMU variable to check it against)."""
+        try:
+            if p.type == "Real":
+                return float(p.value)
+            if p.type == "Integer":
+                return int(p.value)
+            if p.type == "Boolean":
+                return str(p.value).strip() in ("true", "1")
+        except (TypeError, ValueError):
+            self.fail(f"{label}: {p.value!r} is not a {p.type}")
+            return None
+        self.fail(f"{label}: a {p.type} value for a system's own connector is not supported")
+        return None
 
     def _param(self, comp: _Component, name: str, p: Any, label: str) -> None:
         sig, index = comp.variables[name]
@@ -392,52 +544,98 @@ class _Reader:
         return p.value  # a string, or a binary's hex digits (as a scenario writes them)
 
     # -- connections and the experiment
-    def _connections(self, system: Any, xml_system: Any, components: dict[str, _Component]) -> list[list[Any]]:
-        out: list[list[Any]] = []
-        xml_connections = list(xml_system.iterfind("ssd:Connections/ssd:Connection", NS))
-        for i, (conn, xml) in enumerate(zip(system.connections, xml_connections, strict=True), 1):
-            ends = [(conn.startElement, conn.startConnector), (conn.endElement, conn.endConnector)]
-            label = f"connection {i} ({' -> '.join(f'{e or system.name}.{c}' for e, c in ends)})"
-            if conn.startElement is None or conn.endElement is None:
-                self.fail(f"{label} uses the system's own connectors (an interface to an enclosing system); "
-                          "dynabrain connects components only")
+    def _wire(self, edges: list[Edge], components: dict[str, _Component]) -> tuple[list[list[Any]], list[dict]]:
+        """The scenario's connections (and t=0 events) of the SSP's chains of connections (`ssp_wiring`)."""
+        connect: list[list[Any]] = []
+        events: list[dict[str, Any]] = []
+        for chain in chains(edges):
+            label = chain.edges[0].label
+            sig = {n: components[n[1][0]].variables[n[2]][0] for n in chain.components}
+            sources = [n for n in chain.components if sig[n].kind == "output"]
+            sinks = [n for n in chain.components if sig[n].kind in ("input", "parameter")]
+            if len(sources) > 1:
+                self.fail(f"{label}: {' and '.join(signal(n) for n in sources)} both drive one chain of connections")
                 continue
-            found = [self._end(label, element, connector, components) for element, connector in ends]
-            if None in found:
+            if sources:
+                for sink in sinks:
+                    if sig[sink].kind == "parameter":
+                        self.fail(f"{label}: the output {signal(sources[0])} drives the parameter {signal(sink)}")
+                    else:
+                        scalar = components[sources[0][1][0]].variables[sources[0][2]][1] is not None
+                        connect += self._link(chain, sources[0], sink, sig, scalar or sig[sources[0]].shape == ())
+                for outer in chain.outer:
+                    self.notes.append(f"the system's output {outer[2]!r} is {signal(sources[0])}")
                 continue
-            (a, sig_a), (b, sig_b) = found  # type: ignore[misc]
-            if (sig_a.kind, sig_b.kind) == ("input", "output"):
-                (a, sig_a), (b, sig_b) = (b, sig_b), (a, sig_a)
-            elif (sig_a.kind, sig_b.kind) != ("output", "input"):
-                self.fail(f"{label} joins an {sig_a.kind} and an {sig_b.kind}; a connection goes from an output to "
-                          "an input")
-                continue
-            if not same_unit(sig_a.unit, sig_b.unit):
-                self.fail(f"{label}: from {sig_a.unit!r} to {sig_b.unit!r}, a unit conversion, which dynabrain does "
-                          "not do")
-            transform = [c for c in xml if "Transformation" in str(c.tag)]
-            if transform:
-                self.fail(f"{label}: a {_local_name(transform[0])} (transformations are not supported)")
-            entry: list[Any] = [a, b]
-            if _annotation(xml, "Connection", self.label).get("delay") == "true":
-                entry.append({"delay": True})
-            out.append(entry)
-        return out
+            value = next((self.values[n] for e in chain.edges for n in (e.a, e.b) if n in self.values), None)
+            by = ", ".join(repr(n[2]) for n in chain.outer) or "a nested system's connector"
+            for sink in sinks:
+                if value is None:
+                    self.notes.append(f"{signal(sink)} is the system's input {by}: nothing gives it a value here (set "
+                                      "it with an event or from a brain)")
+                elif sig[sink].kind == "parameter":
+                    components[sink[1][0]].params[sig[sink].name] = value
+                else:
+                    events.append({"at": "0s", "set": {signal(sink): value}})
+                    self.notes.append(f"{signal(sink)} takes {value!r} from the system's {by} (an event at t=0)")
+        return connect, events
 
-    def _end(self, label: str, element: str, connector: str,
-             components: dict[str, _Component]) -> tuple[str, Any] | None:
-        comp = components.get(element)
-        if comp is None:
-            if not any(p.startswith(f"{self.label}: component {element!r}") for p in self.problems):
-                self.fail(f"{label}: no FMU component {element!r} (components: {', '.join(components) or 'none'})")
-            return None
-        if connector not in comp.connectors:
-            known = ", ".join(comp.connectors) or "none"
-            self.fail(f"{label}: component {element!r} has no connector {connector!r} (its connectors: {known})")
-            return None
-        if connector not in comp.variables:
-            return None  # reported with the component's connectors
-        return f"{element}.{connector}", comp.variables[connector][0]
+    def _link(self, chain: Chain, src: Node, dst: Node, sig: dict[Node, Any], scalar: bool) -> list[list[Any]]:
+        """The connections that carry ``src`` to ``dst``: one, or two through a module that applies the
+        chain's linear transformation (`modules.basic.Gain` with an offset)."""
+        a, b = signal(src), signal(dst)
+        label = chain.edges[0].label
+        transforms = [(e, c) for e in chain.edges for c in e.xml if "Transformation" in str(c.tag)]
+        delay = any(_annotation(e.xml, "Connection", self.label).get("delay") == "true" for e in chain.edges)
+        if not same_unit(sig[src].unit, sig[dst].unit):
+            self.fail(f"{label}: from {sig[src].unit!r} to {sig[dst].unit!r}, a unit conversion, which dynabrain "
+                      "does not do")
+            return []
+        if not transforms:
+            return [[a, b, {"delay": True}] if delay else [a, b]]
+        edge, t = transforms[0]
+        if _local_name(t) != "LinearTransformation" or len(transforms) > 1 or not scalar or \
+                (edge.a, edge.b) not in ((src, dst), (dst, src)):
+            self.fail(f"{edge.label}: a {_local_name(t)} (dynabrain applies a linear transformation on a connection "
+                      "between two components' scalars)")
+            return []
+        try:
+            factor, offset = float(t.get("factor", "1")), float(t.get("offset", "0"))
+        except ValueError:
+            self.fail(f"{edge.label}: LinearTransformation factor={t.get('factor')!r} offset={t.get('offset')!r}")
+            return []
+        name = re.sub(r"\W", "_", f"{dst[1][0]}_{dst[2]}_map")
+        self.maps.append({"name": name, "python": "dynabrain.modules.basic:Gain",
+                          "params": {"k": factor, "offset": offset, "n": 0, "unit": sig[src].unit or "1"}})
+        self.notes.append(f"{a} -> {b}: its LinearTransformation (factor {factor:g}, offset {offset:g}) is module "
+                          f"{name!r}")
+        first = [a, f"{name}.u", {"delay": True}] if delay else [a, f"{name}.u"]
+        return [first, [f"{name}.y", b]]
+
+    def _break_loops(self, connect: list[list[Any]], components: dict[str, _Component]) -> list[list[Any]]:
+        """Direct connections into feedthrough modules that close a loop (the FMUs declare no dependencies
+        that would open it): delayed, the ones that go back in the SSP's order, or with ``loops="iterate"``
+        the loop is declared `iterate` instead (strong coupling). Each choice is noted."""
+        feedthrough = {n for n, c in components.items() if c.info.feedthrough} | {m["name"] for m in self.maps}
+        order = [*components, *(m["name"] for m in self.maps)]
+        direct = [(i, c[0].partition(".")[0], c[1].partition(".")[0]) for i, c in enumerate(connect)
+                  if len(c) == 2 and c[1].partition(".")[0] in feedthrough]
+        back = backward_edges(order, [(s, d) for _, s, d in direct])
+        if not back:
+            return connect
+        if self.loop_mode == "iterate":
+            looped = sorted({m for k in back for m in direct[k][1:]}, key=order.index)
+            self.loops.append({"name": "ssp_loop", "modules": looped})
+            self.notes.append(f"a loop of feedthrough modules ({', '.join(looped)}) is iterated to agreement each "
+                              "step (iterate:), as asked")
+            return connect
+        out = [list(c) for c in connect]
+        for k in sorted(back):
+            i = direct[k][0]
+            out[i] = [*out[i], {"delay": True}]
+            self.notes.append(f"{out[i][0]} -> {out[i][1]} is delayed to break a loop of feedthrough modules (their "
+                              "FMUs declare no dependencies that would open it); import with loops='iterate' to "
+                              "iterate the loop instead")
+        return out
 
     def _world(self, root: Any, xml_system: Any, components: dict[str, _Component]) -> dict[str, Any]:
         experiment = root.find("ssd:DefaultExperiment", NS)
@@ -487,6 +685,10 @@ class _Reader:
         if "step_ns" in mine:
             return mine["step_ns"]
         for annotation in xml_system.iterfind("ssd:Annotations/ssc:Annotation", NS):
+            if annotation.get("type") == "com.opensimulationplatform":  # libcosim's (OSP)
+                algorithm = next(annotation.iter("{*}FixedStepAlgorithm"), None)
+                if algorithm is not None and algorithm.get("baseStepSize"):
+                    return self._step_of(algorithm.get("baseStepSize"), "the OSP FixedStepAlgorithm annotation")
             if annotation.get("type") != "org.openmodelica":
                 continue
             master = next(annotation.iter("{*}FixedStepMaster"), None)
@@ -509,6 +711,23 @@ class _Reader:
             return 0
         self.notes.append(f"step {_ns_text(ns)}: from {source}")
         return ns
+
+
+class _InlineEntry:
+    """An inline ``ssm:MappingEntry`` as FMPy's file reader would give it (source, target, transformation)."""
+
+    def __init__(self, xml: Any):
+        self.source, self.target = xml.get("source"), xml.get("target")
+        t = xml.find("ssc:LinearTransformation", NS)
+        other = next((c for c in xml if "Transformation" in str(c.tag)), None)
+        self.transformation = _Linear(t) if t is not None else other
+
+
+class _Linear:
+    """An inline ``ssc:LinearTransformation`` (its factor and offset as written)."""
+
+    def __init__(self, xml: Any):
+        self.factor, self.offset = xml.get("factor"), xml.get("offset")
 
 
 def _element_bindings(system: Any, name: str) -> list[Any]:
