@@ -41,11 +41,14 @@ def import_command(
                                                     "the SSP's name with .yaml, beside it)")] = None,
         fmu_dir: Annotated[Path | None, typer.Option("--fmu-dir", help="where the FMUs go (default: a folder "
                                                      "named after the scenario, beside it)")] = None,
-        run: Annotated[bool, typer.Option("--run", help="run the scenario once written")] = False) -> None:
+        run: Annotated[bool, typer.Option("--run", help="run the scenario once written")] = False,
+        loops: Annotated[str, typer.Option("--loops", help="a loop of feedthrough FMUs that declare no "
+                                           "dependencies: 'delay' a connection of it, or 'iterate' it")] = "delay",
+) -> None:
     """Turn an SSP into a scenario: components become FMU modules, connections `connect` entries,
     parameter bindings module params, the default experiment `world:`."""
     try:
-        result = import_ssp(ssp, output, fmu_dir=fmu_dir)
+        result = import_ssp(ssp, output, fmu_dir=fmu_dir, loops=loops)
     except SSPError as exc:
         _fail(exc)
         return
