@@ -21,24 +21,20 @@ It needs an offscreen renderer for the eyes; where none works it says so and sto
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 import numpy as np
 from blocks_humanoid import (
     GOAL_M,
     PLAN_AT,
-    SCENARIO,
     TARGET,
     blocks_on,
     brain_world,
     describe,
-    look,
     plan,
+    see,
 )
 
-from dynabrain.modules.mujoco.offscreen import RendererUnavailableError
-from dynabrain.orchestrator import load_world
 from dynabrain.orchestrator.brain.calibrate import calibrate
 
 BELIEVED_FRICTION = 0.6
@@ -90,13 +86,7 @@ def main() -> None:
     ap.add_argument("--backend", default="auto", help="batch backend (serial, processes, lockstep, ...)")
     ap.add_argument("--budget", type=int, default=96, help="futures the calibration may simulate")
     opts = ap.parse_args()
-    scene = load_world(SCENARIO)
-    try:
-        seen = look(scene)
-    except RendererUnavailableError as exc:
-        sys.exit(f"no offscreen renderer here, the kid's eyes cannot see: {exc}")
-    finally:
-        scene.close()
+    seen = see()
     names = [b.colour for b in seen]
     middle = middle_block(seen)
     brain, real = setup(seen, real=False), setup(seen, real=True)

@@ -94,6 +94,17 @@ def look(scene: World) -> list[Block]:
     return recognise(faces(scene), TABLE_TOP_M)
 
 
+def see() -> list[Block]:
+    """The blocks the kid recognises in the scene as it stands at t=0, or exit where no renderer works."""
+    scene = load_world(SCENARIO)
+    try:
+        return look(scene)
+    except RendererUnavailableError as exc:
+        sys.exit(f"no offscreen renderer here, the kid's eyes cannot see: {exc}")
+    finally:
+        scene.close()
+
+
 def brain_world(seen: list[Block], **overrides) -> World:
     """The brain's own world, run to the look, the blocks it saw added, run on to `PLAN_AT`."""
     world = load_world(BRAIN, **overrides)
@@ -262,14 +273,7 @@ def main() -> None:
     ap.add_argument("--max-expansions", type=int, default=40)
     ap.add_argument("--connect", help="also execute on the blocks_humanoid world served at this Zenoh endpoint")
     opts = ap.parse_args()
-    scene = load_world(SCENARIO)
-    try:
-        try:
-            seen = look(scene)
-        except RendererUnavailableError as exc:
-            sys.exit(f"no offscreen renderer here, the kid's eyes cannot see: {exc}")
-    finally:
-        scene.close()
+    seen = see()
     print(f"seen {len(seen)} blocks: " + "; ".join(
         f"{b.colour} {np.round(np.multiply(b.size, 1000)).astype(int).tolist()} mm at "
         f"{np.round(b.pos, 3).tolist()}" for b in seen))

@@ -80,11 +80,7 @@ def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, 
             except Exception as exc:  # this branch's failure
                 failed[k] = exc
             continue
-        moves = core._moves
-        if moves is None or moves[0] is not s:
-            moves = core._moves = (s, *core._plan_moves(s))
-        for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls, wrenches
-            dst[di] = src if si is None else src[si]
+        write_inputs(core, s)
         jobs.append((s.model, s.data, core._nsub - 1))
         stepped.append((k, core, s))
     _run(jobs)
@@ -149,3 +145,13 @@ def _take(jobs: list[tuple[Any, Any, int]], taken: Any) -> None:
         if extra:
             _step(m, d, extra)
         _step1(m, d)
+
+
+def write_inputs(core: Any, s: Any) -> None:
+    """The core's inputs (joint forces, motor controls, wrenches) into the MuJoCo data of its compiled
+    scene ``s``, as its own step writes them (its plan of copies made once per scene)."""
+    moves = core._moves
+    if moves is None or moves[0] is not s:
+        moves = core._moves = (s, *core._plan_moves(s))
+    for dst, di, src, si in moves[1]:
+        dst[di] = src if si is None else src[si]

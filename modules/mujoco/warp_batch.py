@@ -259,11 +259,7 @@ def step_cores(members: Sequence[Any], t_ns: int, dt_ns: int, failed: dict[int, 
             except Exception as exc:  # this branch's failure
                 failed[k] = exc
             continue
-        moves = core._moves
-        if moves is None or moves[0] is not s:
-            moves = core._moves = (s, *core._plan_moves(s))
-        for dst, di, src, si in moves[1]:  # inputs: joint forces, motor controls, wrenches
-            dst[di] = src if si is None else src[si]
+        batched.write_inputs(core, s)
         per_world |= differ
         stepped.append((k, core, s))
     if not stepped:
