@@ -79,3 +79,28 @@ def test_clocks_tick_pattern_over_the_reference_examples_ten_seconds(clocks_fmu)
         three = 1 if t >= 4 else 0
         expected.append((one, two, three, one + two + three))
     assert run_clocks(clocks_fmu, 9) == expected
+
+
+def test_an_enumeration_connector_is_exported_as_an_enumeration(tmp_path):
+    """The Reference FMU Feedthrough (FMI 3.0) has an input and an output of enumeration type ``Option``:
+    the SSP names the type on both connectors and lists its items once (checked against the SSP 1.0
+    schema), and imports back."""
+    from lxml import etree
+
+    from dynabrain.orchestrator.scenario.ssp import SSD, export_ssp, import_ssp
+
+    fmu = build("Feedthrough", 3, tmp_path)
+    (tmp_path / "ft.yaml").write_text(f"name: ft\nworld: {{step: 1ms, duration: 10ms, core: null}}\n"
+                                      f"modules:\n  - {{name: f, fmu: {fmu}}}\n")
+    result = export_ssp(tmp_path / "ft.yaml", tmp_path / "ft.ssp")
+    assert result.validated
+    with zipfile.ZipFile(result.path) as z:
+        root = etree.fromstring(z.read(SSD))
+    ns = {"ssd": "http://ssp-standard.org/SSP1/SystemStructureDescription",
+          "ssc": "http://ssp-standard.org/SSP1/SystemStructureCommon"}
+    typed = {c.get("name"): c.find("ssc:Enumeration", ns).get("name")
+             for c in root.iterfind(".//ssd:Connector", ns) if c.find("ssc:Enumeration", ns) is not None}
+    assert typed == {"Enumeration_input": "Option", "Enumeration_output": "Option"}
+    items = [(i.get("name"), i.get("value")) for i in root.iterfind("ssd:Enumerations/ssc:Enumeration/ssc:Item", ns)]
+    assert items == [("Option 1", "1"), ("Option 2", "2")]
+    import_ssp(result.path, tmp_path / "back.yaml")

@@ -49,6 +49,8 @@ class _Writer:
         self.problems: list[Problem] = []
         self.resources: dict[str, str] = {}  # FMU file -> its name in the archive
         self.connections = 0
+        self.enumerations: dict[str, list[tuple[str, int]]] = {}  # enumeration type -> its items (ssd:Enumerations)
+        self._descriptions: dict[str, Any] = {}  # FMU file -> its model description (FMPy's), read when needed
 
     def el(self, parent: Any, tag: str, **attrib: str) -> Any:
         prefix, _, name = tag.partition(":")
@@ -69,6 +71,12 @@ class _Writer:
         for empty in (elements, connections):
             if not len(empty):
                 system.remove(empty)
+        if self.enumerations:  # (the SSD's order: System, Enumerations, ..., DefaultExperiment)
+            kinds = self.el(root, "ssd:Enumerations")
+            for name, items in self.enumerations.items():
+                kind = self.el(kinds, "ssc:Enumeration", name=name)
+                for item, value in items:
+                    self.el(kind, "ssc:Item", name=item, value=str(value))
         duration_ns = self.sc.duration_ns
         experiment = self.el(root, "ssd:DefaultExperiment", startTime="0.0", stopTime=repr(duration_ns / NS_PER_S))
         self._annotate(experiment, "World", step_ns=str(self.world.dt_ns), duration_ns=str(duration_ns),
@@ -94,7 +102,11 @@ class _Writer:
         for sig in (*info.inputs, *info.outputs):
             for name in _names(sig, None) or ():
                 conn = self.el(connectors, "ssd:Connector", name=name, kind=sig.kind)
-                self.el(conn, f"ssc:{_SSC_TYPES.get(sig.type, 'Integer')}")
+                enumeration = self._enumeration(info, sig) if sig.fmi_type == "Enumeration" else None
+                if enumeration is not None:
+                    self.el(conn, "ssc:Enumeration", name=enumeration)
+                else:
+                    self.el(conn, f"ssc:{_SSC_TYPES.get(sig.type, 'Integer')}")
         if not len(connectors):
             comp.remove(connectors)
         values = []
@@ -115,6 +127,24 @@ class _Writer:
             extra["call_timeout_ns"] = str(parse_duration_ns(cfg.call_timeout, allow_frequency=False))
         if extra:
             self._annotate(comp, "Module", **extra)
+
+    def _enumeration(self, info: Any, sig: Any) -> str | None:
+        """The enumeration type of an FMU variable (its items written once under ``ssd:Enumerations``), or
+        None where the model description does not say one."""
+        from fmpy import read_model_description
+
+        md = self._descriptions.get(info.path)
+        if md is None:
+            md = self._descriptions[info.path] = read_model_description(info.path, validate=False)
+        variable = next((v for v in md.modelVariables if v.name == sig.name), None)
+        kind = getattr(variable, "declaredType", None)
+        items = getattr(kind, "items", None)
+        if kind is None or not items:
+            return None
+        listed = [(item.name, int(item.value)) for item in items]
+        if self.enumerations.setdefault(kind.name, listed) != listed:
+            return None  # two FMUs, one name, other items: left as a number
+        return kind.name
 
     def _resource(self, info: Any) -> str:
         if info.path not in self.resources:
