@@ -60,8 +60,6 @@ ANNOTATION = "org.dynabrain.scenario"
 """The type of dynabrain's annotations (world, module and connection settings SSP has no words for)."""
 FMU_TYPE = "application/x-fmu-sharedlibrary"
 SSV_TYPE = "application/x-ssp-parameter-set"
-_DEFAULT_STEP_NS = 2_000_000  # the scenario's own default (world.step: 2ms)
-_DEFAULT_DURATION_NS = NS_PER_S
 
 
 class SSPError(DynabrainError):
