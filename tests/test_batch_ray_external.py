@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -75,6 +76,8 @@ def cluster():
         yield f"127.0.0.1:{port}", token, home
     finally:
         _stop(temp)
+        for folder in (temp, home):
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def _driver(address: str, env: dict) -> dict:
