@@ -235,8 +235,6 @@ class RolloutBackend:
     of its own. Same interface as `pool.ProcessPool`: `map(tasks)` and `close()`."""
 
     def __init__(self, world: World, workers: int | None = None):
-        self._core_state_spec, self._vel_prefix = STATE, VEL_PREFIX
-        self._core_class = MujocoCore
         self.world = world
         self._check_world(world)
         self.workers = workers or os.cpu_count() or 1
@@ -250,7 +248,7 @@ class RolloutBackend:
     # -- checks -----------------------------------------------------------------------------------------
     def _check_world(self, world: World) -> Any:
         core = world.core
-        if not isinstance(core, self._core_class):
+        if not isinstance(core, MujocoCore):
             kind = "no physics core" if core is None else f"a {type(core).__name__} core"
             raise refuse(f"it rolls out MuJoCo cores with mujoco.rollout; world {world.name!r} has {kind}")
         others = sorted(name for name in world.modules if name != core.name)
@@ -374,7 +372,7 @@ class RolloutBackend:
                          "MuJoCo steps, which mujoco.rollout cannot); use backend 'serial' or 'processes'")
         sources = self._sources.get(view.edits)
         if sources is None:
-            sources = self._sources[view.edits] = _Sources(view.model, ports, self._vel_prefix)
+            sources = self._sources[view.edits] = _Sources(view.model, ports, VEL_PREFIX)
         unknown = [n for n in task.record if columns[n].block == "sensordata" and (
             sources.kind["sensordata"][columns[n].start:columns[n].start + columns[n].size] == UNKNOWN).any()]
         if unknown:
@@ -473,8 +471,8 @@ class RolloutBackend:
         stopped = nstep > 1 and state[0, -1, 0] == state[0, -2, 0]  # rollout stops on a warning: time stands
         if bad or stopped:
             return _Rolled(job, None)
-        final = np.empty(mujoco.mj_stateSize(model, self._core_state_spec))
-        mujoco.mj_getState(model, data, final, self._core_state_spec)
+        final = np.empty(mujoco.mj_stateSize(model, STATE))
+        mujoco.mj_getState(model, data, final, STATE)
         signals = _Gather(job, state[0], None if sensordata is None else sensordata[0], data, kin).signals(columns)
         n = start.sources.n_own_sensordata  # the core saves the acceleration-stage ones with its state
         return _Rolled(job, signals, final, data.sensordata[:n].copy() if n else None)
