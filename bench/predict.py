@@ -8,8 +8,10 @@ ZMP: 8 modules besides the core). Printed, each figure measured in this run, the
    history on: the baseline), then a Batch of ``--branches`` x ``--ticks`` (each branch with its own
    friction and servo offsets, recording the pelvis position and the ZMP) on ``serial``, ``processes``
    (every core), ``lockstep`` (every branch in this process, tick by tick together) and ``ray`` (a local
-   Ray, with ``--ray``), each right after a baseline of its own, and `mujoco.rollout` on the core-only
-   humanoid (the same model, no module: the physics alone, the floor) with as many branches and steps.
+   Ray, with ``--ray``), each right after a baseline of its own, and `mujoco.rollout` of the same futures,
+   physics only (the floor): the humanoid's model with each branch's friction, from the same state, driven
+   by the motor controls the servos gave (recorded once), its trajectories checked bit for bit equal to
+   the batch's, so that it does the very work of the batches' physics and nothing else.
    Each backend's ratio to one world is the median of its per-round ratios (a busy machine slows both
    sides of a round alike); lockstep's ratios to rollout and to processes likewise. Targets (issue 25):
    lockstep >= 0.85 of rollout, >= 1.6x processes; processes >= 1.7x one world on 2 cores. Beside them,
@@ -174,16 +176,25 @@ def core_only_world():
     return world
 
 
-def physics_floor(branches: int, ticks: int, threads: int):
-    """`mujoco.rollout` of the core-only humanoid (the same model as the batches', each branch its own
-    friction, zero controls), ``branches`` x ``ticks`` steps on ``threads`` threads: a call that runs it."""
+def physics_floor(world, request: dict, threads: int):
+    """`mujoco.rollout` of the very futures the batches imagine, physics only: the humanoid's model with
+    each branch's friction, from the world's state, driven by the motor controls its servos gave in a
+    lockstep run of ``request`` (recorded from ``core.ctrl``), ``branches`` x ``ticks`` steps on
+    ``threads`` threads. Returns a call that runs it, and whether its pelvis trajectories are bit for
+    bit those of the batch (the same physics, so the same work: the floor of what any backend can do)."""
     import mujoco
     from mujoco import rollout
 
-    world = core_only_world()
+    record = dict(request, record=("core.pelvis.pos", "core.ctrl"))
+    ticks = np.shape(request["inputs"]["servo.q_ref"])[1]
+    with Batch(world, backend="lockstep") as batch:
+        result = batch.run(ticks, **record)
+    branches = len(result.status)
+    ctrl = np.stack([result.branch("core.ctrl", b) for b in range(branches)])
+    pelvis = np.stack([result.branch("core.pelvis.pos", b) for b in range(branches)])
     twin = world.fork()
     models = []
-    for friction in np.linspace(0.5, 1.2, branches):
+    for friction in request["params"]["core.friction"]:
         twin.set("core.friction", float(friction))
         models.append(copy.copy(twin.core.mj.model))
     twin.close()
@@ -191,15 +202,13 @@ def physics_floor(branches: int, ticks: int, threads: int):
     state0 = np.empty((1, mujoco.mj_stateSize(models[0], full)))
     mujoco.mj_getState(models[0], data, state0[0], full)
     warm = data.qacc_warmstart.copy()[None]
-    world.close()
     datas = [mujoco.MjData(models[0]) for _ in range(threads)]
-    ctrl = np.zeros((branches, ticks, models[0].nu))
 
-    def run() -> None:
-        rollout.rollout(models, datas, state0, ctrl, initial_warmstart=warm, persistent_pool=True)
+    def run() -> np.ndarray:
+        return rollout.rollout(models, datas, state0, ctrl, initial_warmstart=warm, persistent_pool=True)[0]
 
-    run()  # its pool up
-    return run
+    same = np.array_equal(run()[:, :, 1:4], pelvis)  # (and its pool up)
+    return run, same
 
 
 def memory(world, branches: int) -> None:
@@ -243,7 +252,7 @@ def rounds(world, backends: list[str], branches: int, ticks: int, count: int) ->
         batches[name] = Batch(world, backend=name)
         assert batches[name].run(2, **request_for(world, branches, 2)).ok  # workers, forks, threads up
         ready[name] = time.perf_counter() - t0
-    floor = physics_floor(branches, ticks, os.cpu_count() or 1)
+    floor, same = physics_floor(world, request, os.cpu_count() or 1)
     ratios: dict[str, list[float]] = {name: [] for name in [*backends, "lockstep/rollout", "lockstep/processes"]}
     rates: dict[str, list[float]] = {name: [] for name in ["one world", *backends, "rollout"]}
     try:
@@ -275,8 +284,9 @@ def rounds(world, backends: list[str], branches: int, ticks: int, count: int) ->
     for name in backends:
         print(f"   batch on {name:<10} {statistics.median(rates[name]):9.0f} ticks/s   "
               f"{statistics.median(ratios[name]):4.2f}x   (up in {ready[name]:.2f} s)")
-    print(f"   mujoco.rollout, core only (the floor): {statistics.median(rates['rollout']):9.0f} steps/s   "
-          f"{statistics.median(rates['rollout']) / statistics.median(rates['one world']):4.2f}x")
+    floor = statistics.median(rates["rollout"])
+    print(f"   mujoco.rollout of the same futures, physics only (the floor): {floor:9.0f} steps/s   "
+          f"{floor / base:4.2f}x   (same trajectories as the batch: {'yes' if same else 'NO'})")
     return ratios
 
 

@@ -203,20 +203,26 @@ class Servo(Module):
         servos: list[Servo] = list(members)  # type: ignore[arg-type]
         n = len(servos[0]._joints)
         q, qd, ref = inp[:, :n], inp[:, n:2 * n], inp[:, 2 * n:3 * n]
-        programs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-        for servo in servos:
+        programs: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        keys = []
+        gains_of = servos[0].params
+        same_gains = True
+        for servo in servos:  # one pass: what each servo's step checks first, and its program's key
             if servo._pending is not None:
                 servo._begin(t_ns)
-            if servo.params is not servo._gains_of:
+            params = servo.params
+            if params is not servo._gains_of:
                 servo._take_gains()
-        keys = [(_program_key(s._motion), s._t0) for s in servos]
+            same_gains = same_gains and params is gains_of
+            motion = servo._motion
+            key = servo._key if servo._key_of is motion else servo._program_key()
+            keys.append((key, servo._t0))
         for servo, key in zip(servos, keys, strict=True):
             if key not in programs:
                 programs[key] = servo._motion.at(t_ns - servo._t0)
         first = servos[0]
         pos, rate = next(iter(programs.values())) if len(programs) == 1 else (
             np.stack([programs[key][i] for key in keys]) for i in (0, 1))
-        same_gains = all(s._gains_of is first._gains_of for s in servos)
         kp, kd, high, low = first._gains[:4] if same_gains else (
             np.stack([s._gains[i] for s in servos]) for i in range(4))
         new = np.empty(out.shape)
@@ -238,6 +244,13 @@ class Servo(Module):
             tau[rows] = previous + cmd
         new[:, n:2 * n] = tau
         return new
+
+    _key_of: Motion | None = None  # the program `_key` is the key of (`_program_key`)
+    _key: tuple = ()
+
+    def _program_key(self) -> tuple:
+        self._key, self._key_of = _program_key(self._motion), self._motion
+        return self._key
 
     def _take_gains(self) -> None:
         """Cache the gains of the current parameter dict (copy-on-write: a new dict is a change), as

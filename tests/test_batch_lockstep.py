@@ -66,9 +66,11 @@ def check_against_alone(world, result, starts, lengths, inputs, params, record=R
             assert bits(result.branch(name, b)) == bits(ref[name]), (b, name)
 
 
-def test_the_humanoid_with_its_modules_equals_each_branch_alone(humanoid):
+@pytest.mark.parametrize("physics", ["mjbatch", "threads"])
+def test_the_humanoid_with_its_modules_equals_each_branch_alone(humanoid, physics):
     """Two starts, per-branch friction, servo gains and lag, per-tick servo offsets, branches of
-    different lengths, and one that diverges (an absurd gravity): each branch as it is alone."""
+    different lengths, and one that diverges (an absurd gravity): each branch as it is alone, on
+    MuJoCo's own batch (the core, the sensors and the ZMP read from its arrays) and on threads."""
     first = humanoid.export_state()
     humanoid.tick(3)
     second = humanoid.export_state()
@@ -81,9 +83,10 @@ def test_the_humanoid_with_its_modules_equals_each_branch_alone(humanoid):
     params = {"core.friction": [0.6, 0.9, 1.2, 1.0, 0.8], "servo.kp": [40.0, 40.0, 55.0, 40.0, 40.0],
               "servo.lag": [0.0, 0.01, 0.0, 0.0, 0.004],
               "core.gravity": [[0, 0, -9.81], [0, 0, -9.81], [0, 0, -9.81], [0, 0, -1e12], [0, 0, -9.81]]}
-    with Batch(humanoid, backend="lockstep") as batch:
+    with Batch(humanoid, backend="lockstep", physics=physics) as batch:
         result = batch.run(lengths, starts=starts, inputs={"servo.q_ref": q_ref}, params=params, record=RECORD)
         assert result.backend == "lockstep" and result.failed == [3]
+        assert not any("declined" in note for note in result.notes), result.notes
         assert "core" in result.status[3].reason
         check_against_alone(humanoid, result, starts, lengths, {"servo.q_ref": list(q_ref)},
                             {k: list(v) for k, v in params.items()})
@@ -258,3 +261,22 @@ def test_an_animated_robot_and_a_world_made_in_code():
         check_against_alone(world, result, [start] * 3, [20] * 3, {"core.joint_target": list(targets)}, {}, record)
     finally:
         world.close()
+
+
+def test_mujocos_own_batch_declines_what_it_cannot_step_bit_for_bit(humanoid):
+    """A sensor with noise in one branch reads the core's data in its own step: MuJoCo's batch declines
+    the group (said in the notes) and the branches are stepped on threads, each as it is alone. A
+    branch whose velocity input holds a value at a tick leaves the lockstep and is run alone."""
+    start = humanoid.export_state()
+    params = {"imu.noise": [0.0, 0.05, 0.0]}
+    with Batch(humanoid, backend="lockstep", physics="mjbatch") as batch:
+        result = batch.run(12, branches=3, params=params, record=RECORD)
+        assert result.ok and any("physics 'mjbatch' declined" in n and "imu" in n for n in result.notes), result.notes
+    check_against_alone(humanoid, result, [start] * 3, [12] * 3, {}, {k: list(v) for k, v in params.items()})
+
+    vel = np.full((2, 12, 1, 6), np.nan)  # the pelvis (the free body): a twist from tick 4 in branch 1
+    vel[1, 4:] = [0.0, 0.0, 0.0, 0.0, 0.0, 0.1]
+    with Batch(humanoid, backend="lockstep", physics="mjbatch") as batch:
+        result = batch.run(12, branches=2, inputs={"core.body_velocity": vel}, record=RECORD)
+        assert result.ok and any("failed in lockstep" in n for n in result.notes), result.notes
+    check_against_alone(humanoid, result, [start] * 2, [12] * 2, {"core.body_velocity": list(vel)}, {})

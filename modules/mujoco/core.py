@@ -737,11 +737,21 @@ class MujocoCore(EditedCore):
             dst[di] = src if si is None else src[si]
 
     def _plan_moves(self, s: CompiledScene) -> tuple[list[tuple], list[tuple]]:
-        """The copies `step` makes from the inputs and `_write_outputs` into the outputs, as
-        (dst, index, src, index). Copies of neighbouring runs of one array into neighbouring outputs
-        are merged, and where both indexes are slices the copy goes through memoryviews (a memcpy,
-        ~4x cheaper than a numpy slice copy); neighbouring runs of one array into scattered outputs (the
-        bodies of a selection: their rows are apart) become one copy through an index array."""
+        """The copies `step` makes from the inputs and `_write_outputs` into the outputs (`copies`),
+        each made fast: where both indexes are slices the copy goes through memoryviews (a memcpy, ~4x
+        cheaper than a numpy slice copy)."""
+        ins, outs = self.copies(s)
+        return [_move(*c) for c in ins], [_move(*c) for c in outs]
+
+    def copies(self, s: CompiledScene | None = None) -> tuple[list[tuple], list[tuple]]:
+        """What a step of scene ``s`` (default: the current one) copies, as ``(dst, index, src, index)``
+        (``dst[index] = src[index]``): from the input ports into the MuJoCo data (joint forces, motor
+        controls, wrenches), and from the data into the outputs (`_write_outputs`: what can change in a
+        step). Copies of neighbouring runs of one array into neighbouring outputs are merged; neighbouring
+        runs of one array into scattered outputs (the bodies of a selection: their rows are apart) become
+        one copy through an index array. A lockstep batch's physics reads them to make the same copies
+        for every branch at once (`modules.mujoco.mjbatch`)."""
+        s = self._compiled if s is None else s
         ins = []
         if s.n_joints:
             ins.append((s.qfrc_applied, s.joint_dof_adr, self._force, s.joint_rows))
@@ -771,7 +781,7 @@ class MujocoCore(EditedCore):
                 last[2] = slice(last[2].start, index.stop)
             else:
                 outs.append([dst, src, index])
-        return [_move(*p) for p in ins], [_move(self._out, dst, src, index) for dst, src, index in outs]
+        return ins, [(self._out, dst, src, index) for dst, src, index in outs]
 
     def _write_all(self) -> None:
         """Every output, with the constant ones of static and frozen bodies and joints."""

@@ -52,23 +52,34 @@ from ..kernel.structure import SAVE_STATE
 from ..kernel.world import World
 
 _EACH = Module.step_batch.__func__  # type: ignore[attr-defined]  # the default: each member alone
-PHYSICS = {"threads": None, "mjwarp": "dynabrain.modules.mujoco.warp_batch"}
+PHYSICS = {"auto": "dynabrain.modules.mujoco.mjbatch", "mjbatch": "dynabrain.modules.mujoco.mjbatch",
+           "threads": None, "mjwarp": "dynabrain.modules.mujoco.warp_batch"}
 """The physics a lockstep batch may step its MuJoCo cores with: by name, the module (resolved when asked,
-so the brain imports no shipped module) whose ``handles(cls)`` and ``step_batch(cls, ...)`` replace a
-core class's own batched step; None: the class's own (MuJoCo's C on threads)."""
+so the brain imports no shipped module) that replaces a core class's own batched step, in one of two ways:
+
+- ``open(entries)`` (MuJoCo's own batch, ``mjbatch``): for a group, a session that steps the
+  core and the modules that read it (``session.handles(name)``, ``session.step_batch(name, ...)``,
+  ``session.sync(rows)`` before an ending branch's states are read, ``session.close()``), or a sentence
+  saying why it declines the group (stepped then by the classes' own batched steps);
+- ``handles(cls)`` and ``step_batch(cls, ...)`` (``mjwarp``).
+
+None: the classes' own (MuJoCo's C on threads). ``auto`` (the default) is ``mjbatch`` where MuJoCo has
+it and the group allows it, else the classes' own, silently."""
 
 
-def _physics(name: str | None) -> Any:
-    name = name or os.environ.get("DYNABRAIN_LOCKSTEP_PHYSICS", "").strip() or "threads"
+def _physics(name: str | None) -> tuple[str, Any]:
+    name = name or os.environ.get("DYNABRAIN_LOCKSTEP_PHYSICS", "").strip() or "auto"
     if name not in PHYSICS:
         raise DynabrainError(f"batch backend 'lockstep': no physics {name!r} (one of {', '.join(PHYSICS)})")
     if PHYSICS[name] is None:
-        return None
+        return name, None
     physics = importlib.import_module(PHYSICS[name])
     why = physics.unavailable()
     if why is not None:
+        if name == "auto":
+            return name, None
         raise DynabrainError(f"batch backend 'lockstep': physics {name!r} cannot run here: {why}")
-    return physics
+    return name, physics
 
 
 @dataclass
@@ -89,7 +100,7 @@ class LockstepBackend:
 
     def __init__(self, world: World, workers: int | None = None, physics: str | None = None):
         self.world = world
-        self.physics = _physics(physics)  # see `PHYSICS`
+        self.physics_name, self.physics = _physics(physics)  # see `PHYSICS`
         self.size = workers or os.cpu_count() or 1
         self._scratch: World | None = None
         self._forks: list[World] = []
@@ -178,7 +189,7 @@ class LockstepBackend:
             ro = _read_only(bus)
             kept = [pair for row, b in enumerate(group) for pair in _bind(b, bus[row], ro[row])]
             try:
-                return _Lockstep(group, self.world.dt_ns, bus, ro, self.physics).run()
+                return self._lockstep(group, bus, ro)
             finally:
                 _give_back(kept)
         if self._layout is not layout or self._bus is None or len(self._bus) < len(self._forks):
@@ -190,7 +201,16 @@ class LockstepBackend:
             if b.fork not in self._kept:
                 self._kept[b.fork] = _bind(b, self._bus[b.fork], self._ro[b.fork])
         lo, hi = forks[0], forks[-1] + 1
-        return _Lockstep(group, self.world.dt_ns, self._bus[lo:hi], self._ro[lo:hi], self.physics).run()
+        return self._lockstep(group, self._bus[lo:hi], self._ro[lo:hi])
+
+    def _lockstep(self, group: list[_Branch], bus: np.ndarray, ro: np.ndarray) -> tuple[dict, list[_Branch]]:
+        step = _Lockstep(group, self.world.dt_ns, bus, ro, self.physics)
+        try:
+            return step.run()
+        finally:
+            if step.declined and self.physics_name not in ("auto", "threads"):
+                self.notes.append(f"physics {self.physics_name!r} declined the branches: {step.declined}; "
+                                  "stepped on threads")
 
     def _own(self, fork: int) -> None:
         """Give fork ``fork``'s modules back the bindings of its world (before it imports or runs alone)."""
@@ -293,18 +313,32 @@ class _Lockstep:
         for row, branch in enumerate(branches):
             bus[row] = branch.start.bus
         self.lengths = np.array([b.task.ticks for b in branches])
+        self.session: Any = None
+        """The physics' session for this group (`PHYSICS`: ``open``), or None."""
+        self.declined = ""
+        """Why the physics declined this group ("" if it did not)."""
 
     def _entries(self) -> list[_Entry]:
         layout, out = self.structure.layout, []
-        for i, entry in enumerate(self.structure.dispatch):
-            members = [b.start.structure.records[self._record_index(entry.name)].module for b in self.branches]
+        every = [(entry.name, [b.start.structure.records[self._record_index(entry.name)].module
+                               for b in self.branches]) for entry in self.structure.dispatch]
+        if self.physics is not None and hasattr(self.physics, "open"):
+            session = self.physics.open(every)
+            if isinstance(session, str):
+                self.declined = session
+            else:
+                self.session = session
+        for i, (entry, (_name, members)) in enumerate(zip(self.structure.dispatch, every, strict=True)):
             cls = type(members[0])
             slots = layout.modules[entry.name]
             rec = self.structure.records[self._record_index(entry.name)]
             ports = ", ".join(f"{p.name} {p.shape}" for p in rec.outputs if p.view_of is None)
             assert all(b.start.structure.dispatch[i].name == entry.name for b in self.branches)
             step_batch, batched = cls.step_batch, cls.step_batch.__func__ is not _EACH
-            if self.physics is not None and self.physics.handles(cls):
+            if self.session is not None:
+                if self.session.handles(entry.name):
+                    step_batch, batched = functools.partial(self.session.step_batch, entry.name), True
+            elif self.physics is not None and hasattr(self.physics, "handles") and self.physics.handles(cls):
                 step_batch, batched = functools.partial(self.physics.step_batch, cls), True
             out.append(_Entry(entry.name, entry.period_ns, entry.period_ticks, entry.phase, entry.copies,
                               entry.gather, members, step_batch, batched,
@@ -360,7 +394,11 @@ class _Lockstep:
         and fork, by task index; those that failed)."""
         longest = int(self.lengths.max())
         inputs, records = self._inputs(longest), self._records(longest)
-        finals, failed = self._ticks(self._entries(), inputs, records, longest)
+        try:
+            finals, failed = self._ticks(self._entries(), inputs, records, longest)
+        finally:
+            if self.session is not None:
+                self.session.close()
         done = {}
         for row, (bus, states) in finals.items():
             done[self.branches[row].task.index] = self._outcome(row, bus, states, records)
@@ -403,15 +441,19 @@ class _Lockstep:
                         failed.update(int(r) for r in gone)
                         active = np.setdiff1d(active, gone)
                         every = False
+                rows = slice(None) if len(active) == count else active  # (a slice: no gather)
                 if spans and len(active):
-                    total = sum(bus[active, a:b].sum(axis=1) for a, b in spans)
+                    total = sum(bus[rows, a:b].sum(axis=1) for a, b in spans)
                     finite = np.isfinite(total)
                     if not finite.all():
                         failed.update(int(r) for r in active[~finite])
                         active = active[finite]
+                        rows = active
                 for a, b, _shape, out in records.values():
-                    out[active, k] = bus[active, a:b]
+                    out[rows, k] = bus[rows, a:b]
                 ending = active[self.lengths[active] == k + 1]
+                if self.session is not None and len(ending):
+                    self.session.sync(ending)
                 for row in ending:
                     finals[int(row)] = (bus[row].copy(), self._states(int(row)))
                 active = active[self.lengths[active] > k + 1]
