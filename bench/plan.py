@@ -146,10 +146,14 @@ def swing_episodes(opts: argparse.Namespace) -> None:
     single = swing_env(ticks, opts.ticks_per_step)
     print(f"   WorldEnv (one copy):                    {single:8.1f} episodes/s   1.00x   "
           f"({single * steps:.0f} steps/s; {single / base:.2f}x the world alone)")
-    for backend in ("serial", "processes"):
-        rate, startup = swing_vector_env(ticks, opts.ticks_per_step, opts.copies, backend)
+    rates = {}
+    for backend in ("serial", "processes", "lockstep"):
+        rate, startup = rates[backend] = swing_vector_env(ticks, opts.ticks_per_step, opts.copies, backend)
         print(f"   WorldVectorEnv, {opts.copies} copies on {backend:<10} {rate:8.1f} episodes/s   "
               f"{rate / single:4.2f}x   (made in {startup:.2f} s)")
+    ratio = rates["lockstep"][0] / rates["processes"][0]
+    print(f"   target vector env on lockstep >= 3x processes (issue 25): {'met' if ratio >= 3 else 'MISSED'} "
+          f"({ratio:.2f}x)")
     print(f"   {load()}")
 
 

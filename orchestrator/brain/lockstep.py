@@ -111,6 +111,7 @@ class LockstepBackend:
         self._ro: np.ndarray | None = None
         self._layout: Any = None
         self._kept: dict[int, list[tuple[Module, Any]]] = {}
+        self._sessions: dict[tuple[int, ...], Any] = {}  # the forks of a group -> its physics' last session
         self.notes: list[str] = []
         """What the last batch did other than one lockstep over every branch (groups, branches run alone)."""
         self.reran = 0
@@ -204,10 +205,16 @@ class LockstepBackend:
         return self._lockstep(group, self._bus[lo:hi], self._ro[lo:hi])
 
     def _lockstep(self, group: list[_Branch], bus: np.ndarray, ro: np.ndarray) -> tuple[dict, list[_Branch]]:
-        step = _Lockstep(group, self.world.dt_ns, bus, ro, self.physics)
+        key = tuple(b.fork for b in group)
+        previous = self._sessions.pop(key, None)
+        step = _Lockstep(group, self.world.dt_ns, bus, ro, self.physics, previous)
         try:
             return step.run()
         finally:
+            if previous is not None and step.session is not previous:
+                previous.close()
+            if step.session is not None:
+                self._sessions[key] = step.session
             if step.declined and self.physics_name not in ("auto", "threads"):
                 self.notes.append(f"physics {self.physics_name!r} declined the branches: {step.declined}; "
                                   "stepped on threads")
@@ -238,6 +245,9 @@ class LockstepBackend:
         return out
 
     def close(self) -> None:
+        for session in self._sessions.values():
+            session.close()
+        self._sessions = {}
         for fork in list(self._kept):
             self._own(fork)
         for world in self._forks:
@@ -304,10 +314,12 @@ class _Entry:
 class _Lockstep:
     """One group of branches stepped together (see the module docstring)."""
 
-    def __init__(self, branches: list[_Branch], dt_ns: int, bus: np.ndarray, ro: np.ndarray, physics: Any = None):
+    def __init__(self, branches: list[_Branch], dt_ns: int, bus: np.ndarray, ro: np.ndarray, physics: Any = None,
+                 previous: Any = None):
         """``bus``: the group's stacked bus (row k: branch k's, its modules bound to it), ``ro`` the same
-        read-only; ``physics``: see `PHYSICS`."""
-        self.branches, self.dt_ns, self.physics = branches, dt_ns, physics
+        read-only; ``physics``: see `PHYSICS`; ``previous``: the physics' session of the last batch of
+        these forks, which it may take again."""
+        self.branches, self.dt_ns, self.physics, self.previous = branches, dt_ns, physics, previous
         self.structure = branches[0].start.structure
         self.bus, self.ro = bus, ro
         for row, branch in enumerate(branches):
@@ -323,7 +335,7 @@ class _Lockstep:
         every = [(entry.name, [b.start.structure.records[self._record_index(entry.name)].module
                                for b in self.branches]) for entry in self.structure.dispatch]
         if self.physics is not None and hasattr(self.physics, "open"):
-            session = self.physics.open(every)
+            session = self.physics.open(every, self.previous)
             if isinstance(session, str):
                 self.declined = session
             else:
@@ -394,11 +406,7 @@ class _Lockstep:
         and fork, by task index; those that failed)."""
         longest = int(self.lengths.max())
         inputs, records = self._inputs(longest), self._records(longest)
-        try:
-            finals, failed = self._ticks(self._entries(), inputs, records, longest)
-        finally:
-            if self.session is not None:
-                self.session.close()
+        finals, failed = self._ticks(self._entries(), inputs, records, longest)
         done = {}
         for row, (bus, states) in finals.items():
             done[self.branches[row].task.index] = self._outcome(row, bus, states, records)
