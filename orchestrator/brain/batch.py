@@ -36,10 +36,12 @@ Backends, one API:
 - ``threads``: a world whose only module is a MuJoCo core, through ``mujoco.rollout`` on threads
   (no Python per step; `modules.mujoco.rollout_backend` says what it maps and refuses);
 - ``lockstep``: every branch in this process, advanced tick by tick together: the N physics of a tick
-  in one call on threads (GIL released), each module stepped once for all branches through its
-  batched step (`Module.step_batch`: numpy in the shipped modules; others branch by branch); any
-  world, per-branch starts, parameters and inputs (`lockstep.LockstepBackend`); ``physics="mjwarp"``
-  steps the MuJoCo cores on MJWarp instead (warp's CPU device, or a GPU: `modules.mujoco.warp_batch`);
+  in one call on threads (GIL released; by default MuJoCo's own batch, whose arrays the sensors and
+  the ZMP read for every branch at once: `modules.mujoco.mjbatch`), each other module stepped once
+  for all branches through its batched step (`Module.step_batch`: numpy in the servo; others branch
+  by branch); any world, per-branch starts, parameters and inputs (`lockstep.LockstepBackend`);
+  ``physics="threads"`` steps each branch's own MjData on threads, ``physics="mjwarp"`` on MJWarp
+  (warp's CPU device, or a GPU: `modules.mujoco.warp_batch`);
 - ``ray``: the same workers as Ray actors, on a local Ray or a cluster (``address=``), for a brain
   that outgrows one machine (``pip install 'dynabrain[ray]'``);
 - ``auto``: on a machine with more than one core, ``processes`` when the world can be rebuilt (the

@@ -7,8 +7,8 @@ its parameters set; for the batch, every branch's modules are bound to one row o
 - the inputs given per tick are written into each branch's row (one numpy assignment per input when
   every branch is running);
 - each connection's copy is one copy across the rows (``bus[:, dst] = bus[:, src]``);
-- each module is stepped once for all branches through its class's `Module.step_batch`: the MuJoCo
-  core steps the N physics on threads with the GIL released (`modules.mujoco.batched`), the robot
+- each module is stepped once for all branches through its class's `Module.step_batch`, or the
+  physics' (below): the MuJoCo core steps the N physics in one call with the GIL released, the robot
   modules that implement it compute all branches with numpy, and a module without it is stepped
   branch by branch (the default `step_batch`);
 - the outputs are checked finite per branch, and the signals asked for recorded from the rows.
@@ -28,9 +28,11 @@ inside a branch) are stepped in a lockstep group of their own, and a branch whos
 of the world's scheduled events is run alone by `run_branch` (events are not stepped in lockstep);
 `notes` says so for each batch (`BatchResult.notes`).
 
-The MuJoCo cores' physics is MuJoCo's C on threads, or MJWarp with ``physics="mjwarp"`` (or
-``DYNABRAIN_LOCKSTEP_PHYSICS=mjwarp``: `modules.mujoco.warp_batch`, on warp's CPU device unless told
-otherwise; close to C, not bit for bit: a branch run again alone runs on C).
+The MuJoCo cores' physics (`PHYSICS`, ``physics=`` or ``DYNABRAIN_LOCKSTEP_PHYSICS``): by default MuJoCo's
+own batch (``mjbatch``: `modules.mujoco.mjbatch`, bit for bit; the core, the sensors and the ZMP of every
+branch read from its arrays), where the group allows it, else each branch's MjData stepped on threads
+(``threads``: `modules.mujoco.batched`); or MJWarp (``mjwarp``: `modules.mujoco.warp_batch`, on warp's CPU
+device unless told otherwise; close to C, not bit for bit: a branch run again alone runs on C).
 """
 
 from __future__ import annotations
