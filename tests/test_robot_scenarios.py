@@ -15,7 +15,7 @@ from dynabrain.orchestrator.scenario.model import load_scenario
 from dynabrain.orchestrator.scenario.runner import run_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
-ROBOT_SCENARIOS = ["humanoid_stand", "earthquake", "earthquake_fast", "seesaw", "swing", "breakout"]
+ROBOT_SCENARIOS = ["humanoid_stand", "earthquake", "earthquake_fast", "balance_quake", "seesaw", "swing", "breakout"]
 
 
 @pytest.mark.parametrize("name", ROBOT_SCENARIOS)
