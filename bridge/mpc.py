@@ -63,6 +63,7 @@ class RemoteMpc(Mpc):
                                      timeout=max(60.0, ticks * branches * 1e-4))
         finally:
             self.world.drop_snapshot(start)
+        self._failure = next((str(s) for s in reply.status if not s.ok), "")
         return reply.signals, np.array([s.ok for s in reply.status])
 
     def _check_world(self) -> None:

@@ -101,7 +101,7 @@ class MovingFloor(Module):
                 raise fail(self.name, "targets", f"{unknown[0]!r} is not an object of the scene "
                            f"(objects: {', '.join(ctx.core.objects())})")
             frozen = [o for o in self.targets if o not in ctx.core.selection]
-            if frozen:
+            if frozen and not ctx.importing:  # (an imported state brings its own selection)
                 raise fail(self.name, "targets", f"the floor {frozen[0]!r} is frozen (not selected): select it "
                            "(make) before the moving floor is added, or it will not move")
 

@@ -213,3 +213,29 @@ def test_mpc_keeps_the_humanoid_up_on_the_fast_earthquake_where_the_servo_falls(
     fell, said = bm.quake_trial(10.0, 0.04, "mpc", 1.5, futures=(16, 0.5, 0.05))
     assert fell is None, said
     assert "30 replans" in said
+
+
+def test_a_replan_whose_every_future_fails_says_why_and_a_rebuilt_quake_world_imports():
+    """Every future failing is an error naming the first failure (not a plan of infinite cost). And a
+    world whose floor joined by an event (its selection changed first) runs on the processes backend,
+    which rebuilds it and imports the state: the moving floor is set up for the state's selection."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "examples"))
+    import balance_mpc as bm
+
+    from dynabrain.orchestrator import Batch
+
+    world = bm.quake_world(10.0, 0.04, stabilizer=False)
+    try:
+        with Batch(world, backend="processes", workers=1) as batch:
+            rebuilt = batch.run(15, branches=1, record=["core.pelvis.pos"])
+        with Batch(world, backend="lockstep") as batch:
+            forked = batch.run(15, branches=1, record=["core.pelvis.pos"])
+        assert rebuilt.ok and np.array_equal(rebuilt.branch("core.pelvis.pos", 0), forked.branch("core.pelvis.pos", 0))
+        with Mpc(world, bm.pitch_strategies(), bm.quake_cost, record=bm.QUAKE_RECORD, horizon=0.1, samples=4,
+                 backend="serial", assume={"core.pelvis.wrench": [1e30] * 6}) as mpc:  # (every future diverges)
+            with pytest.raises(MpcError, match=r"every future of the replan of tick \d+ failed; the first: "):
+                mpc.replan()
+    finally:
+        world.close()

@@ -219,6 +219,7 @@ class Mpc:
         """Run ``branches`` futures from ``start``; (recorded signals, which branches ran to the end)."""
         result = self.batch.run(ticks, branches=branches, starts=start, params=params, record=self.record,
                                 inputs=self._assumed(ticks), keep_states=False)
+        self._failure = next((str(s) for s in result.status if not s.ok), "")
         return result.signals, np.array([s.ok for s in result.status])
 
     def _assumed(self, ticks: int) -> dict[str, np.ndarray]:
@@ -395,6 +396,10 @@ class Mpc:
             params[name] = [draws[k % d][name] for k in range(n * d)]
         ticks = len(prefix) + self.horizon
         recorded, ok = self._futures(state, ticks, n * d, params)
+        if not ok.any():  # nothing to choose from: not a plan of infinite cost
+            why = getattr(self, "_failure", "")
+            raise MpcError(f"mpc: every future of the replan of tick {tick} failed"
+                           + (f"; the first: {why}" if why else ""))
         skip = len(prefix)
         signals = {name: v[:, skip:] for name, v in recorded.items()}
         controls = {ch: np.repeat(rows[:, :, k], d, axis=0) for k, ch in enumerate(self.channels)}

@@ -227,6 +227,10 @@ class SetupContext:
     core: PhysicsCore | None = None
     """The world's physics core, when there is one (targets are resolved against its scene)."""
     extras: dict[str, Any] = field(default_factory=dict)
+    importing: bool = False
+    """True when the module is made to take a state imported next (`World.import_state` of a state that
+    holds it, as a batch's worker does): what its setup would check against the world now (the core's
+    selection, say) is the state's to decide, and the state is not there yet."""
 
 
 @dataclass(frozen=True, eq=False)

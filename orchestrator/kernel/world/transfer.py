@@ -162,5 +162,5 @@ class StateTransfer:
         module = ctx.module_factory(entry.spec)
         made.append(module)
         ctx.known[id(module)] = module
-        self.wiring.setup(module, entry.period_ns)
+        self.wiring.setup(module, entry.period_ns, importing=True)
         return module

@@ -61,11 +61,12 @@ class Wiring:
             ctx.core = module
         ctx.edited(edits.AddModule(module.name, module_spec(module, period_ns, conns)))
 
-    def setup(self, module: Module, period_ns: int) -> None:
-        """``module.setup`` with this world's context (its own random generator, the core)."""
+    def setup(self, module: Module, period_ns: int, *, importing: bool = False) -> None:
+        """``module.setup`` with this world's context (its own random generator, the core); ``importing``:
+        made for a state imported next (`SetupContext.importing`)."""
         ctx = self.ctx
         setup = SetupContext(ctx.name, ctx.dt_ns, period_ns, ctx.tick, ctx.rng_for(module.name),
-                             module if isinstance(module, PhysicsCore) else ctx.core)
+                             module if isinstance(module, PhysicsCore) else ctx.core, importing=importing)
         call_module(module, "setup", ctx.tick, module.setup, setup)
 
     def remove_module(self, name: str) -> None:
