@@ -233,9 +233,10 @@ def test_a_replan_whose_every_future_fails_says_why_and_a_rebuilt_quake_world_im
         with Batch(world, backend="lockstep") as batch:
             forked = batch.run(15, branches=1, record=["core.pelvis.pos"])
         assert rebuilt.ok and np.array_equal(rebuilt.branch("core.pelvis.pos", 0), forked.branch("core.pelvis.pos", 0))
-        with Mpc(world, bm.pitch_strategies(), bm.quake_cost, record=bm.QUAKE_RECORD, horizon=0.1, samples=4,
-                 backend="serial", assume={"core.pelvis.wrench": [1e30] * 6}) as mpc:  # (every future diverges)
-            with pytest.raises(MpcError, match=r"every future of the replan of tick \d+ failed; the first: "):
-                mpc.replan()
+        diverging = {"core.pelvis.wrench": [1e30] * 6}  # (every future diverges)
+        with (Mpc(world, bm.pitch_strategies(), bm.quake_cost, record=bm.QUAKE_RECORD, horizon=0.1, samples=4,
+                  backend="serial", assume=diverging) as mpc,
+              pytest.raises(MpcError, match=r"every future of the replan of tick \d+ failed; the first: ")):
+            mpc.replan()
     finally:
         world.close()
