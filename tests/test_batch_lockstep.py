@@ -280,3 +280,32 @@ def test_mujocos_own_batch_declines_what_it_cannot_step_bit_for_bit(humanoid):
         result = batch.run(12, branches=2, inputs={"core.body_velocity": vel}, record=RECORD)
         assert result.ok and any("failed in lockstep" in n for n in result.notes), result.notes
     check_against_alone(humanoid, result, [start] * 2, [12] * 2, {"core.body_velocity": list(vel)}, {})
+
+
+def test_fmu_instances_of_the_branches_step_in_one_call_each_as_it_is_alone(monkeypatch):
+    """The servo FMU (built from fmus/servo) of N branches stepped by one call into the C helper a tick
+    (`fused.step_each`), each branch its own gains and targets, one given a non-finite target (its FMU
+    step fails, it alone): every branch as it is alone, bit for bit."""
+    from dynabrain.orchestrator.fmu import fused, module
+
+    calls = []
+    real = fused.step_each
+    monkeypatch.setattr(module, "step_each", lambda members, t_ns, failed: calls.append(len(members))
+                        or real(members, t_ns, failed))
+    world = load_world(ROOT / "scenarios" / "fmu_servo.yaml")
+    try:
+        world.tick(10)
+        start = world.export_state()
+        q_ref = np.zeros((4, 40, 2))
+        for b in range(4):
+            q_ref[b] = [0.1 * b, -0.2 * b]
+        q_ref[2, 25:] = np.nan
+        params = {"servo.kp": [20.0, 35.0, 20.0, 10.0]}
+        record = ("core.j1.q", "servo.tau", "core.j2.qd")
+        with Batch(world, backend="lockstep") as batch:
+            result = batch.run(40, branches=4, inputs={"servo.q_ref": q_ref}, params=params, record=record)
+        assert result.failed == [2] and calls and max(calls) == 4
+        check_against_alone(world, result, [start] * 4, [40] * 4, {"servo.q_ref": list(q_ref)},
+                            {k: list(v) for k, v in params.items()}, record)
+    finally:
+        world.close()

@@ -235,6 +235,37 @@ class FusedFMUs:
                 m._failed(code, -1, t_ns)  # raises
 
 
+def step_each(members: Sequence[FMUModule], t_ns: int, failed: dict[int, BaseException]) -> bool:
+    """Step ``members`` (instances on the hot path, each bound to its own row of a lockstep batch's bus)
+    in one call to ``dyn_group`` from ``t_ns``, saving no state; a member whose step fails goes into
+    ``failed`` (its index -> the error its own step raises) and those after it go on in a call of their
+    own. False (nothing stepped) without the C helper. The servo FMU's world (`scenarios/fmu_servo.yaml`),
+    64 branches x 500 ticks in lockstep: 180k ticks/s against 161k with a Python call per instance."""
+    fn = group_helper()
+    if fn is None:
+        return False
+    n = len(members)
+    plans = np.array([ctypes.addressof(m._session.stepper.plan) for m in members], dtype=np.uintp)
+    first = np.zeros(n + 1, dtype=np.uintp)
+    codes = np.zeros(n, dtype=np.intc)
+    none = (_Copy * 1)()
+    start = 0
+    while start < n:
+        group = _Group(n - start, plans.ctypes.data + plans.itemsize * start, first.ctypes.data,
+                       ctypes.addressof(none), plans.ctypes.data, codes.ctypes.data + codes.itemsize * start)
+        rc = fn(ctypes.addressof(group), t_ns, 0)
+        stop = start + rc if rc > 0 else n  # (rc > 0: member start + rc - 1 failed, those after it did not step)
+        for i in range(start, stop):
+            code = int(codes[i])
+            if code:
+                try:
+                    members[i]._failed(code, -1, t_ns)  # a warning is logged; a failure raises
+                except Exception as exc:  # this branch's failure
+                    failed[i] = exc
+        start = stop
+    return True
+
+
 def _run(dst: Any, src: Any) -> tuple[int, int, int]:
     """(dst start, src start, count) of a bus copy made of single indices or plain slices."""
     if isinstance(dst, slice):

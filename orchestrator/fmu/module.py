@@ -33,7 +33,7 @@ from ..kernel.errors import DynabrainError, UnitError
 from ..kernel.module import Capabilities, Module, Param, Port, SetupContext
 from .clocks import check_periods
 from .errors import FMUCallError, FMUError
-from .fused import FusedFMUs, GroupSerialized, GroupState
+from .fused import FusedFMUs, GroupSerialized, GroupState, step_each
 from .info import DIMENSIONS, FmuInfo, Signal
 from .session import Session
 from .states import FMUState, SerializedFMUState
@@ -245,6 +245,21 @@ class FMUModule(FMUModuleBase):
         if cls is not FMUModule or any(type(m) is not FMUModule for m in members):
             return None
         return FusedFMUs.make(members, copies)  # type: ignore[arg-type]
+
+    @classmethod
+    def step_batch(cls, members: Sequence[Module], t_ns: int, dt_ns: int, inp: np.ndarray, out: np.ndarray,
+                   failed: dict[int, BaseException]) -> None:
+        """The N instances of one FMU (N branches of a lockstep batch) stepped in one call into the C
+        helper (`fused.step_each`) when each takes the hot path of `step` (reals on the bus): the same
+        FMI calls per instance as its own step, less the state it saves for history (a lockstep keeps
+        none; `get_state` takes one when asked). Otherwise each member steps on its own."""
+        fmus: list[FMUModule] = list(members)  # type: ignore[arg-type]
+        if cls is not FMUModule or not all(type(m) is FMUModule and m._simple and dt_ns == m._dt_ns and m._fusable()
+                                            for m in fmus) or not step_each(fmus, t_ns, failed):
+            super().step_batch(members, t_ns, dt_ns, inp, out, failed)
+            return
+        for m in fmus:
+            m._state = None  # the FMU's state now is not the one its last step saved
 
     def _fusable(self) -> bool:
         """Whether `step` would take its hot path (with or without states for history) on the C helper."""
