@@ -16,7 +16,8 @@ import pytest
 
 from dynabrain.modules.basic import Counter
 from dynabrain.modules.exudyn.core import ExudynCore
-from dynabrain.modules.mujoco.core import MujocoCore, MujocoView
+from dynabrain.modules.mujoco.compiled import MujocoView
+from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.modules.mujoco.scene import FrozenBody, FrozenObject
 from dynabrain.orchestrator.kernel.core import (
     NO_EDITS,

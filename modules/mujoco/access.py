@@ -43,7 +43,7 @@ from dynabrain.orchestrator.kernel.suggest import did_you_mean
 if TYPE_CHECKING:
     from dynabrain.orchestrator.kernel.core import PhysicsCore
 
-    from .core import MujocoView
+    from .compiled import MujocoView
 
 _OBJ = mujoco.mjtObj
 _HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
