@@ -20,6 +20,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from dynabrain.modules.basic import Noise, Sine
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.logs import logger as mcap_logger
+from dynabrain.orchestrator.logs import shared_rows
 from dynabrain.orchestrator.logs import sink as mcap_sink
 from dynabrain.orchestrator.logs.logger import McapLogger
 from dynabrain.orchestrator.logs.read import final_mask, iter_bus, read_index
@@ -311,22 +312,22 @@ def test_shared_rows_fall_back_when_shared_memory_is_full(tmp_path, monkeypatch)
     full, spare = tmp_path / "full", tmp_path / "spare"
     full.mkdir()
     spare.mkdir()
-    real = mcap_sink._reserve
+    real = shared_rows._reserve
 
     def reserve(folder, size):
         if folder == str(full):
             raise OSError(28, "No space left on device")  # what posix_fallocate says on a full tmpfs
         return real(folder, size)
 
-    monkeypatch.setattr(mcap_sink, "_reserve", reserve)
-    monkeypatch.setattr(mcap_sink, "_row_folders", lambda: [str(full), str(spare)])
-    rows = mcap_sink.SharedRows((4, 3))
+    monkeypatch.setattr(shared_rows, "_reserve", reserve)
+    monkeypatch.setattr(shared_rows, "_row_folders", lambda: [str(full), str(spare)])
+    rows = shared_rows.SharedRows((4, 3))
     assert os.path.dirname(rows.path) == str(spare) and rows.array.shape == (4, 3)
     rows.array[:] = 1.5
     rows.release()
-    monkeypatch.setattr(mcap_sink, "_row_folders", lambda: [str(full)])
+    monkeypatch.setattr(shared_rows, "_row_folders", lambda: [str(full)])
     with pytest.raises(DynabrainError, match=r"no memory to share rows with the log writer.*No space left"):
-        mcap_sink.SharedRows((4, 3))
+        shared_rows.SharedRows((4, 3))
     assert list(full.iterdir()) == [] and list(spare.iterdir()) == []
 
 

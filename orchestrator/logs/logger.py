@@ -84,7 +84,8 @@ from .schema import (
     pose_columns,
     result_events,
 )
-from .sink import NOTHING_WRITTEN, ProcessSink, ThreadSink
+from .sink import NOTHING_WRITTEN
+from .sinks import ProcessSink, ThreadSink
 from .write import COMPRESSIONS
 
 _log = logging.getLogger("dynabrain.mcap")

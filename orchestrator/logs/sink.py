@@ -15,7 +15,7 @@ messages come first. Only a rollback (ticks produced again) or a branch imagined
 writes messages below the latest log time (`McapWriter.out_of_order` counts them; the logger then
 puts the file in order when it closes).
 
-`ProcessSink` (the default) runs the sink in a child process (``python -m
+`logs.sinks.ProcessSink` (the default) runs the sink in a child process (``python -m
 dynabrain.orchestrator.logs.sink``; it starts in about 0.15 s, and `attach` waits for it). Rows
 travel through shared memory (each block of rows is a file in ``/dev/shm``, or in the temporary
 folder when that is missing or full, mapped by both processes), calls through a pipe (each message a
@@ -25,21 +25,17 @@ simulation's process they hold its interpreter lock part of the time, and loggin
 about 45% of its step that way (``bench/logging_cost.py``). If the simulation's process dies, the
 child sees the pipe close and finishes the file (summary and footer): nothing handed over is lost. A
 shared file's name is removed as soon as the child has mapped it (files of processes killed before
-that are removed by the next log started). `ThreadSink` runs the same sink on the writer's thread in
-this process (``McapLogger(writer="thread")``).
+that are removed by the next log started: `logs.shared_rows`). `logs.sinks.ThreadSink` runs the same
+sink on the writer's thread in this process (``McapLogger(writer="thread")``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import mmap
-import os
 import signal
-import subprocess
 import sys
-import tempfile
 import time
-from collections import deque
 from collections.abc import Callable, Hashable, Mapping, Sequence
 from multiprocessing.connection import Connection
 from typing import Any
@@ -47,7 +43,6 @@ from typing import Any
 import numpy as np
 
 from ..kernel.errors import DynabrainError
-from ..kernel.workers import spawn_worker
 from .messages import (
     Abort,
     Call,
@@ -61,11 +56,7 @@ from .messages import (
     Metadata,
     Open,
     Ready,
-    Release,
     Rows,
-    RowsPart,
-    Shared,
-    Span,
 )
 from .schema import (
     DISCARDED,
@@ -83,6 +74,7 @@ from .schema import (
     imagined_frame,
     log_message,
 )
+from .shared_rows import mapped
 from .write import McapWriter, Part
 
 START_TIMEOUT_S = 60.0
@@ -411,326 +403,6 @@ _CALLS: dict[type, Callable[..., None]] = {Metadata: LogSink.metadata, Layout: L
 """Each writer call's method: its message's fields are the method's arguments, in order."""
 
 
-# -- shared rows ------------------------------------------------------------------------------------------
-class SharedRows:
-    """A float64 array in a file of shared memory (``/dev/shm`` where there is one), mapped here and, by
-    its path, in the child writer."""
-
-    def __init__(self, shape: tuple[int, ...]):
-        size = max(8, 8 * int(np.prod(shape)))
-        error: OSError | None = None
-        for folder in _row_folders():
-            try:
-                self._map, self.path = _reserve(folder, size)
-                break
-            except OSError as exc:
-                error = exc
-        else:
-            raise DynabrainError(f"no memory to share rows with the log writer ({size} bytes): {error}")
-        self.array = np.frombuffer(self._map, dtype=np.float64, count=int(np.prod(shape))).reshape(shape)
-
-    def release(self) -> None:
-        self.array = None  # type: ignore[assignment]
-        with contextlib.suppress(BufferError, ValueError):
-            self._map.close()
-        with contextlib.suppress(OSError):
-            os.unlink(self.path)
-
-
-def _reserve(folder: str, size: int) -> tuple[mmap.mmap, str]:
-    """A new file of ``size`` bytes in ``folder``, its memory reserved (a full tmpfs, such as a
-    container's small /dev/shm, refuses here rather than killing the simulation with SIGBUS when a
-    row is written), mapped."""
-    fd, path = tempfile.mkstemp(prefix=f"{_PREFIX}{os.getpid()}-", dir=folder)
-    try:
-        if hasattr(os, "posix_fallocate"):
-            os.posix_fallocate(fd, 0, size)
-        else:
-            os.ftruncate(fd, size)
-        # mapped with its pages (MAP_POPULATE, where there is one): the rows written later fault no page in
-        flags = mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0)
-        return mmap.mmap(fd, size, flags=flags), path
-    except OSError:
-        with contextlib.suppress(OSError):
-            os.unlink(path)
-        raise
-    finally:
-        os.close(fd)
-
-
-def _mapped(shared: Shared, maps: dict[str, tuple[mmap.mmap, np.ndarray]]) -> np.ndarray:
-    """The child's view of a shared array (mapped once per path)."""
-    path, shape = shared
-    hit = maps.get(path)
-    if hit is None:
-        with open(path, "r+b") as fh:  # its pages mapped now (they exist: the parent reserved them), not
-            mm = mmap.mmap(fh.fileno(), 0, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))  # row by row
-        with contextlib.suppress(OSError):
-            os.unlink(path)  # both processes have it mapped now: the name is no longer needed
-        hit = maps[path] = (mm, np.frombuffer(mm, dtype=np.float64, count=int(np.prod(shape))).reshape(shape))
-    return hit[1]
-
-
-def remove_stale_rows() -> None:
-    """Remove shared-row files left by processes that no longer run (both killed before the child
-    mapped a block); their names carry the simulation's process id."""
-    for folder in _row_folders():
-        with contextlib.suppress(OSError):
-            for name in os.listdir(folder):
-                if not name.startswith(_PREFIX):
-                    continue
-                pid = name[len(_PREFIX):].split("-", 1)[0]
-                if pid.isdigit() and not _alive(int(pid)):
-                    with contextlib.suppress(OSError):
-                        os.unlink(os.path.join(folder, name))
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _row_folders() -> list[str]:
-    """Where shared rows go: ``/dev/shm`` (memory) where there is one, else (or when it is full) the
-    temporary folder."""
-    shm = ["/dev/shm"] if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else []
-    return list(dict.fromkeys([*shm, tempfile.gettempdir()]))
-
-
-_PREFIX = "dynabrain-log-"
-
-
-# -- the sinks the logger uses ----------------------------------------------------------------------------
-class ThreadSink:
-    """The sink on the writer's thread of this process."""
-
-    def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], ros2: bool = False):
-        self._sink = LogSink(path, writer_args, dt_ns, decimate, bodies, descriptors, ros2)
-        self._writer = self._sink.writer
-        self._stats: dict[str, float] = {}
-
-    @staticmethod
-    def new_rows(shape: tuple[int, ...]) -> tuple[np.ndarray, None]:
-        """An array for rows (the writer's thread reads it as it is)."""
-        return np.empty(shape), None
-
-    def call(self, call: Call) -> None:
-        sink = self._sink
-        self._writer.call(lambda: sink.apply(call))
-
-    def rows(self, parts: list[Span | Release]) -> None:
-        """Write the spans, in order; a `Release` hands its block back to its pool once everything
-        before it is written."""
-        sink = self._sink
-
-        def job() -> None:
-            for part in parts:
-                block = part.block
-                if type(part) is Release:
-                    block.pool.append(block)
-                    continue
-                lo, hi = part.lo, part.hi
-                sink.rows(block.codec.key, block.rows[lo:hi], None if block.extra is None else block.extra[lo:hi],
-                          block.first + lo, block.epoch, part.discarded,
-                          [(r - lo, s) for r, s in block.scenes if lo <= r < hi])
-
-        self._writer.call(job)
-
-    def release(self, block: Any) -> None:
-        self._writer.call(lambda: block.pool.append(block))
-
-    def poll(self) -> None:
-        """Nothing to collect: blocks go back to their pools on the writer's thread."""
-
-    def wait(self) -> None:
-        """Give the writer's thread time to hand a block back."""
-        self._writer.check()
-        time.sleep(0.0005)
-
-    def finish(self) -> dict[str, float]:
-        self._stats = self._sink.finish()
-        return self._stats
-
-    def abort(self) -> None:
-        self._writer.close()
-
-    @property
-    def stats(self) -> dict[str, float]:
-        w = self._writer
-        return self._stats or {"messages": w.messages, "chunks": w.chunks, "bytes": w.bytes_written,
-                               "writer_cpu_s": w.thread_cpu_s, "encode_cpu_s": self._sink.encode_cpu_s,
-                               "compress_cpu_s": w.compress_cpu_s, "out_of_order": w.out_of_order}
-
-
-class ProcessSink:
-    """The sink in a child process (see the module docstring)."""
-
-    def __init__(self, path: str, writer_args: Mapping[str, Any], dt_ns: int, decimate: int,
-                 bodies: Sequence[str] | None, descriptors: Mapping[str, bytes], ros2: bool = False):
-        try:  # refuse a path that cannot be written here and now, not at the child's first write
-            os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
-        except OSError as exc:
-            raise DynabrainError(f"cannot write the log {path}: {exc.strerror}") from None
-        self.path = path
-        remove_stale_rows()
-        try:
-            self._proc, self._conn = spawn_worker(__name__)
-        except OSError as exc:
-            raise DynabrainError(f"cannot start the log writer process for {path}: {exc}") from None
-        self._seq = 0
-        self._releases: deque[tuple[int, list[Any]]] = deque()
-        self._shared: list[SharedRows] = []
-        self._error: str | None = None
-        self._stats: dict[str, float] = {}
-        try:
-            self._send(Open(path, dict(writer_args), dt_ns, decimate, None if bodies is None else list(bodies),
-                            dict(descriptors), ros2))
-            reply = self._wait(START_TIMEOUT_S, "start")  # ready, or why not
-            if type(reply) is not Ready:
-                raise DynabrainError(_reason(reply))
-        except BaseException:
-            self._end()
-            raise
-
-    def new_rows(self, shape: tuple[int, ...]) -> tuple[np.ndarray, SharedRows]:
-        """An array for rows in shared memory, and its handle (the child maps it by its path)."""
-        rows = SharedRows(shape)
-        self._shared.append(rows)
-        return rows.array, rows
-
-    def call(self, call: Call) -> None:
-        self._send(call)
-
-    def rows(self, parts: list[Span | Release]) -> None:
-        batch, freed = [], []
-        for part in parts:
-            block = part.block
-            if type(part) is Release:
-                freed.append(block)
-                continue
-            lo, hi = part.lo, part.hi
-            extra = None if block.extra is None else Shared(block.shared_extra.path, block.extra.shape)
-            batch.append(RowsPart(block.codec.key, Shared(block.shared_rows.path, block.rows.shape), extra, lo, hi,
-                                  block.first, block.epoch, part.discarded,
-                                  [(r - lo, s) for r, s in block.scenes if lo <= r < hi]))
-        if batch:
-            self._send(Rows(batch))
-        if freed:
-            self._releases.append((self._seq, freed))
-        self.poll()
-
-    def release(self, block: Any) -> None:
-        self._releases.append((self._seq, [block]))
-        self.poll()
-
-    def poll(self) -> None:
-        """Take the child's acknowledgements: blocks whose rows it has encoded go back to their pools."""
-        conn = self._conn
-        try:
-            while conn.poll():
-                self._take(conn.recv())
-        except (EOFError, OSError):
-            self._error = self._error or f"the log writer process for {self.path} ended ({self._exit()})"
-        self._check()
-
-    def wait(self) -> None:
-        """Wait for the child's next acknowledgement (a block is free again)."""
-        if not self._conn.poll(FINISH_TIMEOUT_S):
-            raise DynabrainError(f"the log writer process for {self.path} wrote nothing for {FINISH_TIMEOUT_S:g} s "
-                                 f"({self._exit()})")
-        self.poll()
-
-    def finish(self) -> dict[str, float]:
-        try:
-            self._send(Finish())
-            reply = self._wait(FINISH_TIMEOUT_S, "finish")
-            if type(reply) is not Finished:
-                raise DynabrainError(_reason(reply))
-            self._stats = reply.stats
-        finally:
-            self._end(wait=False)  # the file is complete: no need to wait for the process to exit
-        return self._stats
-
-    def abort(self) -> None:
-        with contextlib.suppress(Exception):
-            self._send(Abort())
-        self._end()
-
-    @property
-    def stats(self) -> dict[str, float]:
-        return self._stats or NOTHING_WRITTEN
-
-    # -- plumbing ---------------------------------------------------------------------------------------
-    def _send(self, message: Open | Call | Rows | Finish | Abort) -> None:
-        self._check()
-        try:
-            self._conn.send(message)
-        except (OSError, ValueError) as exc:
-            raise DynabrainError(f"the log writer process for {self.path} is gone ({self._exit()}): {exc}") from None
-        if type(message) is Rows:
-            self._seq += 1
-
-    def _take(self, message: Done | Failed | Any) -> None:
-        if type(message) is Done:
-            while self._releases and self._releases[0][0] <= message.batches:
-                for block in self._releases.popleft()[1]:
-                    block.pool.append(block)
-        else:
-            self._error = _reason(message)
-
-    def _wait(self, timeout: float, what: str) -> Ready | Finished | Failed | Any:
-        """The child's next answer that is not an acknowledgement."""
-        deadline = time.monotonic() + timeout
-        while True:
-            left = deadline - time.monotonic()
-            try:
-                ready = self._conn.poll(max(left, 0.0))
-            except (OSError, EOFError):
-                ready = True
-            if not ready:
-                raise DynabrainError(f"the log writer process for {self.path} did not {what} within {timeout:g} s")
-            try:
-                message = self._conn.recv()
-            except (OSError, EOFError):
-                return Failed(f"the log writer process for {self.path} ended ({self._exit()})")
-            if type(message) is Done:
-                self._take(message)
-                continue
-            return message
-
-    def _check(self) -> None:
-        if self._error is not None:
-            raise DynabrainError(self._error)
-
-    def _exit(self) -> str:
-        try:
-            code = self._proc.wait(1.0)
-        except subprocess.TimeoutExpired:
-            return "still running"
-        return f"killed by signal {-code}" if code < 0 else f"exit code {code}"
-
-    def _end(self, wait: bool = True) -> None:
-        """Close the pipe (the child ends when it sees that), and free the shared rows. ``wait``: until
-        the child has exited (killing it after a few seconds); else `subprocess` reaps it later."""
-        with contextlib.suppress(Exception):
-            self._conn.close()
-        if wait:
-            try:
-                self._proc.wait(5.0)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait()
-        for rows in self._shared:
-            rows.release()
-        self._shared.clear()
-
-
 def _serve(conn: Connection) -> None:
     """The child writer: open the log as told, take calls until ``finish``. When the simulation's
     process is gone (its end of the pipe closed, maybe in the middle of a message, or an answer to it
@@ -782,8 +454,8 @@ def _take_calls(conn: Connection, sink: LogSink, path: str, maps: dict[str, tupl
                 if not failed:
                     for part in message.parts:
                         lo, hi, extra = part.lo, part.hi, part.extra
-                        rows = _mapped(part.rows, maps)[lo:hi]
-                        more = None if extra is None else _mapped(extra, maps)[lo:hi]
+                        rows = mapped(part.rows, maps)[lo:hi]
+                        more = None if extra is None else mapped(extra, maps)[lo:hi]
                         sink.rows(part.key, rows, more, part.first + lo, part.epoch, part.discarded, part.scenes)
                 answer = Done(done)
             elif not failed:
@@ -806,7 +478,7 @@ def _tell(conn: Connection, message: Ready | Done | Failed | Finished) -> bool:
     return True
 
 
-def _reason(reply: Any) -> str:
+def reply_reason(reply: Any) -> str:
     """Why the child did not answer as asked (`Failed`, or a message it should not have sent)."""
     return reply.reason if type(reply) is Failed else f"the log writer process answered {reply!r}"
 
