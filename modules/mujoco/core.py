@@ -80,7 +80,7 @@ from dynabrain.orchestrator.kernel.core import (
 from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Capabilities, Param, Port, SetupContext
 
-from . import animate, batched, warning_log
+from . import animate, batched, restitution, warning_log
 from . import options as mo
 from . import scene as ms
 from .compiled import (
@@ -403,7 +403,7 @@ class MujocoCore(EditedCore):
         m.opt.timestep = dt
         m.opt.gravity[:] = p["gravity"]
         fr, g = float(p["friction"]), float(np.linalg.norm(p["gravity"]))
-        solref, solimp = ms.contact_params(float(p["restitution"]), dt, g)
+        solref, solimp = restitution.contact_params(float(p["restitution"]), dt, g)
         friction, priority, solrefs = np.full(m.ngeom, fr), np.zeros(m.ngeom, dtype=int), np.tile(solref, (m.ngeom, 1))
         for body, (own_f, own_e) in self._own_materials().items():  # a body's own coefficients rule its contacts
             geoms = s.body_geoms.get(body)
@@ -412,7 +412,7 @@ class MujocoCore(EditedCore):
                 if own_f is not None:
                     friction[geoms] = own_f
                 if own_e is not None:
-                    solrefs[geoms] = ms.contact_params(own_e, dt, g)[0]
+                    solrefs[geoms] = restitution.contact_params(own_e, dt, g)[0]
         m.geom_friction[:, 0], m.geom_priority[:], m.geom_solref[:] = friction, priority, solrefs
         m.geom_solimp[:] = solimp
         if m.npair:
