@@ -158,7 +158,10 @@ def open(entries: Sequence[tuple[str, list[Any]]], previous: Session | None = No
     if previous is not None and previous.fits(core_name, core_members, members):
         previous.load()
         return previous
-    return Session(core_name, core_members, members, readers)
+    try:
+        return Session(core_name, core_members, members, readers)
+    except RuntimeError as exc:  # a copy this physics cannot make from its arrays: the group steps on threads
+        return str(exc)
 
 
 class Session:
