@@ -309,3 +309,36 @@ def test_fmu_instances_of_the_branches_step_in_one_call_each_as_it_is_alone(monk
                             {k: list(v) for k, v in params.items()}, record)
     finally:
         world.close()
+
+
+class Peek(Module):
+    """A user's module that reads the core's MuJoCo data itself (the pelvis height)."""
+
+    def outputs(self):
+        return [Port("z", (), "m")]
+
+    def setup(self, ctx):
+        self._core = ctx.core  # (a fork's copy holds the fork's core)
+
+    def start(self, t_ns):
+        self.out["z"][...] = self._core.mj.data.qpos[2]
+
+    def step(self, t_ns, dt_ns):
+        self.out["z"][...] = self._core.mj.data.qpos[2]
+
+
+def test_a_module_reading_the_cores_data_itself_makes_mujocos_batch_decline():
+    """MuJoCo's batch keeps no branch's MjData current while it steps: a module holding the core is seen,
+    the group is stepped on threads (said), each branch as it is alone."""
+    world = load_world(HUMANOID)
+    try:
+        world.add_module(Peek("peek"))
+        world.tick(5)
+        start = world.export_state()
+        with Batch(world, backend="lockstep", physics="mjbatch") as batch:
+            result = batch.run(10, branches=2, params={"core.friction": [0.7, 1.1]}, record=("peek.z", *RECORD))
+        assert result.ok and any("declined" in n and "peek" in n for n in result.notes), result.notes
+        check_against_alone(world, result, [start] * 2, [10] * 2, {}, {"core.friction": [0.7, 1.1]},
+                            ("peek.z", *RECORD))
+    finally:
+        world.close()

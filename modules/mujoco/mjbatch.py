@@ -42,6 +42,7 @@ from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 
 from . import batched
 from .access import MujocoLink
+from .compiled import MujocoView
 from .core import MujocoCore
 
 try:
@@ -108,8 +109,15 @@ def _pick(index: Any, n: int) -> np.ndarray:
 
 
 def _reads_core(module: Any, core: Any) -> bool:
-    """Whether a module holds the core or a link to it (so may read the core's MjData as it steps)."""
-    return any(v is core or isinstance(v, MujocoLink) for v in vars(module).values())
+    """Whether a module holds the core, a link to it, MuJoCo's model or data, or an array lying in the
+    core's data (so may read the core's MjData as it steps, which this physics does not keep current)."""
+    data = core._compiled.data
+    for v in vars(module).values():
+        if v is core or isinstance(v, (MujocoLink, MujocoView, mujoco.MjData, mujoco.MjModel)):
+            return True
+        if isinstance(v, np.ndarray) and v.dtype == np.float64 and _field(data, v) is not None:
+            return True
+    return False
 
 
 def open(entries: Sequence[tuple[str, list[Any]]], previous: Session | None = None) -> Session | str:
