@@ -5,7 +5,7 @@ Zenoh (`replay`), and the wire format (`protocol`, `frames`, ``PROTOCOL.md``).""
 
 from typing import Any
 
-from .client import BatchReply, BrainClient, Snapshot, StateFrame, View
+from .client import BrainClient
 from .errors import (
     BadRequestError,
     BridgeError,
@@ -18,6 +18,7 @@ from .errors import (
     WorldRefusedError,
     WorldRestartedError,
 )
+from .replies import BatchReply, Snapshot, StateFrame, View
 
 __all__ = [
     "BadRequestError", "BatchReply", "BrainClient", "BridgeError", "CallTimeoutError", "ConnectError",

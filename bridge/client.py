@@ -29,119 +29,25 @@ import contextlib
 import json
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import zenoh
 
-from dynabrain.orchestrator.brain import BranchStatus
-from dynabrain.orchestrator.brain.batch import BranchStatuses
-
 from . import frames
 from . import protocol as p
+from .arguments import finite_list, has_infinity, integer, robot_check, snapshot_id, target_values
 from .errors import (
     ERRORS,
     BadRequestError,
     BridgeError,
     CallTimeoutError,
     NoWorldError,
-    RobotLostError,
-    RobotStoppedError,
     TickStoppedError,
     WorldRefusedError,
 )
+from .replies import BatchReply, Snapshot, StateFrame, View
 from .zenoh_io import DEFAULT_ENDPOINT, JSON, Settings, open_session, payload_bytes
-
-
-@dataclass(frozen=True)
-class View:
-    """Named signals the server reads as one frame (`BrainClient.view`)."""
-
-    id: int
-    names: tuple[str, ...]
-    shapes: tuple[tuple[int, ...], ...]
-    offsets: tuple[int, ...]
-    size: int
-
-    def index(self, name: str) -> int:
-        """Position of a signal; ``cube.pos`` finds the core's ``core.cube.pos``, as `World.get` does."""
-        if name in self.names:
-            return self.names.index(name)
-        short = [i for i, n in enumerate(self.names) if n.split(".", 1)[1:] == [name]]
-        if len(short) == 1:
-            return short[0]
-        raise KeyError(f"{name!r} is not in view {self.id} ({', '.join(self.names)})")
-
-    @classmethod
-    def from_reply(cls, d: dict[str, Any]) -> View:
-        sig = d["signals"]
-        return cls(int(d["view"]), tuple(s["name"] for s in sig), tuple(tuple(s["shape"]) for s in sig),
-                   tuple(int(s["offset"]) for s in sig), int(d["size"]))
-
-
-@dataclass(frozen=True)
-class StateFrame:
-    """The values of a view at one tick."""
-
-    tick: int
-    time_ns: int
-    values: np.ndarray
-    view: View
-
-    def __getitem__(self, name: str) -> float | np.ndarray:
-        i = self.view.index(name)
-        shape = self.view.shapes[i]
-        size = int(np.prod(shape, dtype=np.int64))
-        chunk = self.values[self.view.offsets[i]:self.view.offsets[i] + size]
-        return float(chunk[0]) if shape == () else chunk.reshape(shape)
-
-    def as_dict(self) -> dict[str, float | np.ndarray]:
-        return {n: self[n] for n in self.view.names}
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """A whole-world state kept by the server (`BrainClient.snapshot`)."""
-
-    id: int
-    tick: int
-
-
-@dataclass(frozen=True)
-class BatchReply(BranchStatuses):
-    """What `BrainClient.batch` returns: ``signals[name]`` of shape ``(branches, ticks, *shape)`` (row k the
-    value after tick k+1; NaN for ticks a failed branch did not run), ``status[b]`` how branch b ended,
-    ``snapshots[b]`` the snapshot that keeps its final state (with ``keep_states``; else None), which
-    `BrainClient.restore` continues from. ``tick``: the served world's tick, which the batch left as it was."""
-
-    signals: dict[str, np.ndarray]
-    status: list[BranchStatus]
-    snapshots: list[Snapshot | None]
-    ticks: int
-    tick: int
-    backend: str
-    wall_s: float
-    evicted: list[int]
-    """Snapshots the server dropped to make room for these (it keeps 64)."""
-
-    @classmethod
-    def from_frame(cls, frame: frames.Frame) -> BatchReply:
-        meta = json.loads(frame.meta)
-        branches, ticks = int(meta["branches"]), int(meta["ticks"])
-        if frame.values.size != int(meta["size"]):
-            raise BridgeError(f"batch frame of {frame.values.size} values does not match its description "
-                              f"({meta['size']} values)")
-        signals = {}
-        for sig in meta["signals"]:
-            shape = (branches, ticks, *sig["shape"])
-            at, size = int(sig["offset"]), int(np.prod(shape, dtype=np.int64))
-            signals[sig["name"]] = frame.values[at:at + size].reshape(shape).copy()
-        status = [BranchStatus(bool(s["ok"]), s["reason"], s["failed_tick"], int(s["ticks_done"]))
-                  for s in meta["status"]]
-        kept = [None if k is None else Snapshot(int(k["snapshot"]), int(k["tick"])) for k in meta["snapshots"]]
-        return cls(signals, status, kept, ticks, frame.seq, str(meta["backend"]), float(meta["wall_s"]),
-                   [int(e) for e in meta["evicted"]])
 
 
 class BrainClient:
@@ -331,7 +237,7 @@ class BrainClient:
         """Set a run-time parameter or an unconnected input. NaN goes as null (it means "unset" in an input
         that starts NaN); an infinity is refused here, nothing sent."""
         value = p.plain(value)
-        if _has_infinity(value):
+        if has_infinity(value):
             raise BadRequestError("bad_request", f"{name}: an infinite value cannot be set; nothing sent", "set")
         self.call("set", name=name, value=value)
 
@@ -386,12 +292,12 @@ class BrainClient:
         ``keep_states`` each branch's final state becomes a snapshot (`restore` continues from it). The
         server's backend runs it; pass a ``timeout`` (s) long enough for the work."""
         if isinstance(starts, Sequence):
-            starts = [_snapshot_id(s) for s in starts]
+            starts = [snapshot_id(s) for s in starts]
         elif starts is not None:
-            starts = _snapshot_id(starts)
-        frame = self.call("batch", timeout, ticks=_integer(ticks, "ticks"),
-                          branches=None if branches is None else _integer(branches, "branches"), starts=starts,
-                          inputs={str(n): _finite_list(v, str(n)) for n, v in (inputs or {}).items()},
+            starts = snapshot_id(starts)
+        frame = self.call("batch", timeout, ticks=integer(ticks, "ticks"),
+                          branches=None if branches is None else integer(branches, "branches"), starts=starts,
+                          inputs={str(n): finite_list(v, str(n)) for n, v in (inputs or {}).items()},
                           params={str(n): p.plain(v) for n, v in (params or {}).items()},
                           record=[record] if isinstance(record, str) else list(record), keep_states=keep_states)
         if not isinstance(frame, frames.Frame) or frame.kind != frames.BATCH:
@@ -501,7 +407,7 @@ class BrainClient:
 
     def motion(self, robot: str, targets: Sequence[float] | dict[str, float], route: str = "sim") -> dict[str, Any]:
         """Servo targets to the simulation, the robot or both (``route``), with a reply saying what was done."""
-        return self.call("motion", robot=robot, targets=_targets(targets), route=route, sent_ns=time.time_ns())
+        return self.call("motion", robot=robot, targets=target_values(targets), route=route, sent_ns=time.time_ns())
 
     def send_motion(self, robot: str, targets: Sequence[float] | dict[str, float], route: str = "sim") -> None:
         """Publish a motion command (no reply): for control loops; errors arrive as events."""
@@ -509,7 +415,7 @@ class BrainClient:
             self._motion_pub = self._session.declare_publisher(p.key(self.world, "in", "motion"), encoding=JSON,
                                                                priority=zenoh.Priority.REAL_TIME, express=True)
         self._motion_pub.put(p.encode({"v": p.VERSION, "brain": self.brain, "robot": robot,
-                                       "targets": _targets(targets), "route": route, "sent_ns": time.time_ns()}))
+                                       "targets": target_values(targets), "route": route, "sent_ns": time.time_ns()}))
 
     def robot_enable(self, robot: str) -> dict[str, Any]:
         """Enable the robot: it then takes moves and programs; unless one reaches it within the enable
@@ -534,7 +440,7 @@ class BrainClient:
         end = time.monotonic() + timeout
         while True:
             status = self.robot_status(robot)
-            _robot_check(robot, status)
+            robot_check(robot, status)
             played = (status.get("program") or {}).get("robot")
             if played is not None and played.get("state") == "done":
                 return status
@@ -571,66 +477,3 @@ class BrainClient:
 
 
 _CACHED_CALLS = frozenset({"tick", "read", "backtick", "status"})
-
-
-def _snapshot_id(snapshot: Snapshot | int) -> int:
-    return snapshot.id if isinstance(snapshot, Snapshot) else _integer(snapshot, "a snapshot id")
-
-
-def _integer(value: Any, what: str) -> Any:
-    """An integer as JSON writes it (numpy's integers too); anything else goes on for the table's check to
-    refuse, naming the field."""
-    return int(value) if isinstance(value, (int, np.integer)) and not isinstance(value, bool) else value
-
-
-def _finite_list(values: Any, name: str) -> list[Any]:
-    try:
-        arr = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise BadRequestError("bad_request", f"inputs[{name!r}]: not an array of numbers ({exc}); nothing sent",
-                              "batch") from None
-    if not np.isfinite(arr).all():
-        raise BadRequestError("bad_request", f"inputs[{name!r}]: NaN or infinite values; nothing sent", "batch")
-    return arr.tolist()
-
-
-def _has_infinity(value: Any) -> bool:
-    if isinstance(value, float):
-        return value in (float("inf"), float("-inf"))
-    if isinstance(value, (list, tuple)):
-        return any(_has_infinity(v) for v in value)
-    if isinstance(value, dict):
-        return any(_has_infinity(v) for v in value.values())
-    return False
-
-
-def _robot_check(robot: str, status: dict[str, Any]) -> None:
-    """Raise when the robot's status says its program will not be played to its end."""
-    if not status.get("alive"):
-        tick = status.get("lost_tick")
-        raise RobotLostError(robot, tick, f"robot {robot!r}: link lost at tick {tick} (its liveliness token went "
-                                          "away); the program may not have been carried out")
-    program = status.get("program")
-    if program is None:
-        raise RobotStoppedError(robot, None, "no program", f"robot {robot!r}: no program was sent to it (set its "
-                                "servo's sequence first)")
-    if not program.get("forwarded"):
-        raise RobotStoppedError(robot, program.get("tick"), str(program.get("reason")),
-                                f"robot {robot!r}: the program of tick {program.get('tick')} was "
-                                f"{'ignored' if program.get('ignored') else 'not sent'}: {program.get('reason')}")
-    played = program.get("robot") or {}
-    if played.get("state") in ("ignored", "refused", "stopped", "replaced"):
-        tick = status.get("mode_tick") if played["state"] == "stopped" else program.get("tick")
-        raise RobotStoppedError(robot, tick, str(played.get("reason")),
-                                f"robot {robot!r}: {played['state']} the program of tick {program.get('tick')} "
-                                f"at tick {tick}: {played.get('reason')}")
-    tick = status.get("mode_tick")
-    if status.get("mode") == "safe_stop" and played.get("state") != "done" and (tick or 0) >= program["tick"]:
-        raise RobotStoppedError(robot, tick, str(status.get("reason")),
-                                f"robot {robot!r}: safe-stopped at tick {tick}: {status.get('reason')}")
-
-
-def _targets(targets: Sequence[float] | dict[str, float]) -> list[float] | dict[str, float]:
-    if isinstance(targets, dict):
-        return {str(k): float(v) for k, v in targets.items()}
-    return [float(v) for v in targets]

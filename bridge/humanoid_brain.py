@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .client import BrainClient, View
+from .client import BrainClient
+from .replies import View
 
 CROUCH = {"l_hip_pitch": -15, "r_hip_pitch": -15, "l_knee": 30, "r_knee": 30, "l_ankle_pitch": -15,
           "r_ankle_pitch": -15, "l_shoulder_roll": 10, "r_shoulder_roll": -10, "l_elbow": -30, "r_elbow": -30}
