@@ -23,13 +23,13 @@ from dynabrain.orchestrator.kernel.core import (
     NO_EDITS,
     BodyInfo,
     BodySpec,
-    EditedCore,
     Edits,
     JointSpec,
     PhysicsCore,
     SceneSpec,
     Weld,
 )
+from dynabrain.orchestrator.kernel.edited import EditedCore
 from dynabrain.orchestrator.kernel.errors import DynabrainError
 from dynabrain.orchestrator.kernel.module import NO_PORTS, Module, Param, Port, PortBinding
 from dynabrain.orchestrator.kernel.world import World, module_spec

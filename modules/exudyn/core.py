@@ -66,12 +66,12 @@ from dynabrain.orchestrator.kernel.core import (
     NO_EDITS,
     BodyInfo,
     BodySpec,
-    EditedCore,
     Edits,
     SceneSpec,
     body_inputs,
     scene_bodies,
 )
+from dynabrain.orchestrator.kernel.edited import EditedCore
 from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Param, Port, SetupContext
 from dynabrain.orchestrator.kernel.suggest import did_you_mean

@@ -71,12 +71,12 @@ from dynabrain.orchestrator.kernel.core import (
     NO_EDITS,
     BodyInfo,
     BodySpec,
-    EditedCore,
     Edits,
     SceneSpec,
     body_inputs,
     requested_velocity,
 )
+from dynabrain.orchestrator.kernel.edited import EditedCore
 from dynabrain.orchestrator.kernel.errors import DynabrainError, PhysicsDivergedError
 from dynabrain.orchestrator.kernel.module import Capabilities, Param, Port, SetupContext
 

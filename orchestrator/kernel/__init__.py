@@ -7,7 +7,8 @@ names below are what modules and the rooms above use; the files behind them are 
 """
 
 from .checks import CheckReport, check_module
-from .core import COLORS, BodyInfo, BodySpec, CableSpec, EditedCore, Edits, JointSpec, PhysicsCore, SceneSpec, Weld
+from .core import COLORS, BodyInfo, BodySpec, CableSpec, Edits, JointSpec, PhysicsCore, SceneSpec, Weld
+from .edited import EditedCore
 from .errors import (
     AlgebraicLoopError,
     DynabrainError,
