@@ -17,6 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 from dynabrain.modules.mujoco import scene as ms
+from dynabrain.modules.mujoco import spec_source as mss
 from dynabrain.modules.mujoco import warning_log
 from dynabrain.modules.mujoco.core import MujocoCore
 from dynabrain.orchestrator import Module, Port, World
@@ -72,7 +73,7 @@ def test_a_model_file_above_max_bodies_is_refused_before_the_engine_reads_it(tmp
     def read(*args, **kwargs):
         raise AssertionError("MuJoCo read the model file")
 
-    monkeypatch.setattr(ms, "_spec_from_file", read)
+    monkeypatch.setattr(mss, "_spec_from_file", read)
     bodies = "".join(f'<body name="b{i}"><geom size=".1"/></body>' for i in range(limits.MAX_BODIES + 1))
     (tmp_path / "big.xml").write_text(f"<mujoco><worldbody>{bodies}</worldbody></mujoco>")
     path = _scenario(tmp_path, "name: s\nscene: {model: big.xml}\n")
@@ -81,7 +82,7 @@ def test_a_model_file_above_max_bodies_is_refused_before_the_engine_reads_it(tmp
 
 
 def test_the_mujoco_core_refuses_more_bodies_than_mujoco_simulates(monkeypatch):
-    monkeypatch.setattr(ms, "MAX_BODIES", 3)
+    monkeypatch.setattr(mss, "MAX_BODIES", 3)
     boxes = [BodySpec(f"b{i}", "box", (0.1, 0.1, 0.1), pos=(0.0, 0.2 * i, 0.3)) for i in range(4)]
     with pytest.raises(DynabrainError, match=r"4 bodies: MuJoCo simulates at most 3"):
         MujocoCore("core", SceneSpec(bodies=tuple(boxes)))
@@ -91,9 +92,9 @@ def test_the_mujoco_core_refuses_more_bodies_than_mujoco_simulates(monkeypatch):
 # -- the work of loading ----------------------------------------------------------------------------------
 def test_a_core_builds_its_spec_once_and_asks_mujoco_for_no_list_of_every_element(monkeypatch):
     built, named, compiled = [], [], []
-    spec_from_bodies, name_everything, build = ms._spec_from_bodies, ms._name_everything, ms.build_structure
-    monkeypatch.setattr(ms, "_spec_from_bodies", lambda *a: built.append(1) or spec_from_bodies(*a))
-    monkeypatch.setattr(ms, "_name_everything", lambda *a: named.append(1) or name_everything(*a))
+    spec_from_bodies, name_everything, build = mss._spec_from_bodies, mss._name_everything, ms.build_structure
+    monkeypatch.setattr(mss, "_spec_from_bodies", lambda *a: built.append(1) or spec_from_bodies(*a))
+    monkeypatch.setattr(mss, "_name_everything", lambda *a: named.append(1) or name_everything(*a))
     monkeypatch.setattr(ms, "build_structure", lambda *a: compiled.append(1) or build(*a))
     boxes = tuple(BodySpec(f"b{i}", "box", (0.1, 0.1, 0.1), pos=(0.2 * i, 0.0, 0.3)) for i in range(20))
     core = MujocoCore("core", SceneSpec(bodies=(BodySpec("floor", "plane", ()), *boxes)))
@@ -108,15 +109,15 @@ def test_mujoco_memory_is_sized_by_the_scene():
                   for i in range(1024))
     core = MujocoCore("core", SceneSpec(bodies=(BodySpec("floor", "plane", ()), *boxes)))
     m = core.mj.model
-    size = ms.ModelSize(nbody=m.nbody - 1, ngeom=m.ngeom, nv=m.nv, neq=m.neq)
-    assert m.nv == 6144 and m.narena == ms.arena_bytes(size) < 400 * 2**20  # MuJoCo's own rule: 1.7 GB
+    size = mss.ModelSize(nbody=m.nbody - 1, ngeom=m.ngeom, nv=m.nv, neq=m.neq)
+    assert m.nv == 6144 and m.narena == mss.arena_bytes(size) < 400 * 2**20  # MuJoCo's own rule: 1.7 GB
     d = core.mj.data
     for _ in range(50):  # every box lands on the floor: 4096 contacts fit
         mujoco.mj_step(m, d)
     assert d.ncon >= 4 * 1024 and d.maxuse_arena < m.narena
     core.close()
     small = MujocoCore("core", SceneSpec(bodies=(BodySpec("floor", "plane", ()), boxes[0])))
-    assert small.mj.model.narena < ms.arena_bytes(ms.ModelSize(2, 2, 6, 0))  # MuJoCo's own rule where it gives less
+    assert small.mj.model.narena < mss.arena_bytes(mss.ModelSize(2, 2, 6, 0))  # MuJoCo's own rule where it gives less
     small.close()
 
 

@@ -19,6 +19,7 @@ from dynabrain.orchestrator.kernel.module import Port
 
 from . import animate
 from . import scene as ms
+from .spec_source import VEL_PREFIX
 
 _S = mujoco.mjtState
 STATE = int(_S.mjSTATE_INTEGRATION) & ~int(_S.mjSTATE_QFRC_APPLIED) & ~int(_S.mjSTATE_XFRC_APPLIED)
@@ -235,7 +236,7 @@ class CompiledScene:
         self.fused_pos = np.array([world[b][:3] for b in fused]).reshape(-1)
         self.fused_quat = np.array([world[b][3:] for b in fused]).reshape(-1)
         n = len(self.movers)
-        start = int(self.model.sensor_adr[self.model.sensor(f"{ms.VEL_PREFIX}lin_{self.movers[0]}").id]) if n else 0
+        start = int(self.model.sensor_adr[self.model.sensor(f"{VEL_PREFIX}lin_{self.movers[0]}").id]) if n else 0
         # the moving bodies' velocities in sensordata (the core's frame-velocity sensors, in mover order)
         self.linvel_src, self.angvel_src = slice(start, start + 3 * n), slice(start + 3 * n, start + 6 * n)
 
@@ -265,7 +266,7 @@ class CompiledScene:
         self.n_sensor_values = len(rows)  # values of the layout's sensors present in the model
         self.sensor_rows = ms.flat_index(rows, 1)  # ... their positions in the sensordata output
         self.sensor_src = ms.flat_index(src, 1)  # ... and in data.sensordata
-        ours = ms.VEL_PREFIX
+        ours = VEL_PREFIX
         # values of the model's own sensors, at the start of sensordata (the core's velocity sensors follow)
         self.n_model_sensordata = sum(int(m.sensor_dim[s]) for n, s in sensors.items() if not n.startswith(ours))
 

@@ -92,6 +92,7 @@ from .compiled import (
     _positions,
 )
 from .drawing import ModelFileDrawing
+from .spec_source import SpecSource, fail
 
 warning_log.install()  # MuJoCo's warnings to the log, each kind once, counted (no MUJOCO_LOG.TXT)
 
@@ -128,7 +129,7 @@ class MujocoCore(EditedCore):
             self._check_param(key, value)
         self._period = DEFAULT_PERIOD_S
         self._substeps_given = "substeps" in params  # else a model file's own timestep sets them (`setup`)
-        self._source = ms.SpecSource(name, scene, scenario_dir)
+        self._source = SpecSource(name, scene, scenario_dir)
         self._scenes: dict[tuple, SceneView] = {}  # scene key -> its layout and ports (never dropped: see bind)
         self._by_ports: dict[frozenset[str], SceneView] = {}  # the same, by the names of its outputs
         self._cache: OrderedDict[Edits, CompiledScene] = OrderedDict()
@@ -247,7 +248,7 @@ class MujocoCore(EditedCore):
             try:
                 substeps = mo.substeps_for(self._period, own)
             except ValueError as exc:
-                raise ms.fail(self.name, f"scene, field options: {exc}") from None
+                raise fail(self.name, f"scene, field options: {exc}") from None
             if substeps != self.params["substeps"]:
                 self.set_param("substeps", substeps, running=False)
         self._apply_params(self._compiled)
@@ -383,7 +384,7 @@ class MujocoCore(EditedCore):
         bad = {"friction": lambda v: v < 0, "restitution": lambda v: not 0 <= v <= 1,
                "substeps": lambda v: v < 1, "gravity": lambda v: not np.all(np.isfinite(v))}
         if name in bad and bad[name](value):
-            raise ms.fail(self.name, f"parameter {name} = {value!r} is out of range")
+            raise fail(self.name, f"parameter {name} = {value!r} is out of range")
 
     def _apply_params(self, s: CompiledScene) -> None:
         """Apply every run-time parameter to a structure's model (idempotent). The only place the
@@ -599,18 +600,18 @@ class MujocoCore(EditedCore):
         self._row(body)
         s, lay = self._compiled, self._layout
         if body not in lay.free:
-            raise ms.fail(self.name, f"body {body!r} has no free joint; place moves free bodies")
+            raise fail(self.name, f"body {body!r} has no free joint; place moves free bodies")
         joint = next((j for j in lay.body_joints[body] if j in s.joint_slices and s.joint_slices[j].nq == 7), None)
         if joint is not None and s.anim is not None and body in s.anim.bodies:
-            raise ms.fail(self.name, f"body {body!r} is animated (a robot not selected: it holds its place); "
+            raise fail(self.name, f"body {body!r} is animated (a robot not selected: it holds its place); "
                           "select its object with make() first")
         if joint is None:
             state = "absent" if body not in s.body_id else "frozen"
-            raise ms.fail(self.name, f"body {body!r} is {state}; select its object with make() first")
+            raise fail(self.name, f"body {body!r} is {state}; select its object with make() first")
         p = np.asarray(pos, dtype=np.float64)
         q = np.asarray(s.qpos[s.joint_slices[joint].qpos_adr + 3:][:4] if quat is None else quat, dtype=np.float64)
         if p.shape != (3,) or q.shape != (4,) or not (np.all(np.isfinite(p)) and np.linalg.norm(q) > 0):
-            raise ms.fail(self.name, f"place({body!r}): pos must be 3 numbers and quat 4 (w, x, y, z), not 0")
+            raise fail(self.name, f"place({body!r}): pos must be 3 numbers and quat 4 (w, x, y, z), not 0")
         qa, _nq, da, _nv = s.joint_slices[joint]
         s.qpos[qa:qa + 3], s.qpos[qa + 3:qa + 7] = p, q / np.linalg.norm(q)
         s.qvel[da:da + 6] = 0.0

@@ -73,7 +73,7 @@ from .rollout_map import (
     _Sources,
     refuse,
 )
-from .scene import VEL_PREFIX
+from .spec_source import VEL_PREFIX
 
 
 @dataclass(frozen=True)
