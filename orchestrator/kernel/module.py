@@ -470,7 +470,11 @@ class Module(metaclass=ABCMeta):  # noqa: B024 - no abstract method: every hook 
 
         By default each member steps on its own (a module without a batched step is stepped branch by
         branch); a class overrides it when one call over the branches costs less, as the servo does
-        (numpy), and the MuJoCo core (its N physics steps on threads, with the GIL released)."""
+        (numpy), the FMU module (its N instances in one call into C) and the MuJoCo core (its N physics
+        steps on threads, with the GIL released). A lockstep batch's physics may step a class in its
+        stead: MuJoCo's own batch steps the core and the sensors and ZMP that read it from arrays
+        (`modules.mujoco.mjbatch`); a module that reads the core's data itself must hold the core or a
+        `MujocoLink` to it, so that the batch sees it and steps the branches on threads."""
         for k, member in enumerate(members):
             try:
                 member.step(t_ns, dt_ns)
