@@ -47,7 +47,7 @@ import numpy as np
 from dynabrain.orchestrator.kernel.module import Module, Param, Port, SetupContext
 from dynabrain.orchestrator.kernel.structure import Copies
 
-from .mujoco.access import MujocoLink, fail
+from .mujoco.access import MujocoLink, contiguous, fail
 
 _SENS = mujoco.mjtSensor
 
@@ -122,7 +122,7 @@ class Sensor(Module):
         ready = hasattr(self, "_sources") and hasattr(self, "_writes")
         self._views, self._gathers = [], []
         for (port, _cut), (source, index) in zip(self._writes, self._sources, strict=True) if ready else ():
-            run = _contiguous(index)
+            run = contiguous(index)
             if isinstance(run, slice):
                 self._views.append((memoryview(port), memoryview(source[run])))
             else:
@@ -290,13 +290,6 @@ class FusedSensors:
                          tuple(g for m in members for g in m._gathers))
         else:
             self.plan = ()
-
-
-def _contiguous(index: np.ndarray) -> slice | np.ndarray:
-    """A slice for consecutive indices (a cheaper read than an index array)."""
-    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
-        return slice(int(index[0]), int(index[0]) + len(index))
-    return index
 
 
 class _NativeSiteSensor(Sensor):

@@ -50,6 +50,14 @@ _HINGE, _SLIDE = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLI
 _TRN_JOINT = (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT))
 
 
+def contiguous(index: np.ndarray) -> slice | np.ndarray:
+    """A slice for a run of consecutive indices (numpy reads and writes through a slice for less than
+    through an index array), else the indices."""
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return slice(int(index[0]), int(index[0]) + len(index))
+    return index
+
+
 def fail(module: str, field: str, message: str) -> DynabrainError:
     """An error naming the module and the field (``targets``, ``params.sequence[2].pose``...)."""
     return DynabrainError(f"module {module!r} [{field}]: {message}")

@@ -41,7 +41,7 @@ import numpy as np
 from dynabrain.orchestrator.kernel.errors import PhysicsDivergedError
 
 from . import batched
-from .access import MujocoLink
+from .access import MujocoLink, contiguous
 from .compiled import MujocoView
 from .core import MujocoCore
 
@@ -54,7 +54,9 @@ _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 _VEL = int(mujoco.mjtStage.mjSTAGE_VEL)
 _DIVERGED = slice(int(mujoco.mjtWarning.mjWARN_BADQPOS), int(mujoco.mjtWarning.mjWARN_BADQACC) + 1)
 assert _DIVERGED.stop - _DIVERGED.start == 3 and int(mujoco.mjtWarning.mjWARN_BADQVEL) == _DIVERGED.start + 1
-_FIELDS = ("qpos", "qvel", "ctrl", "qfrc_applied", "xfrc_applied", "xpos", "xquat", "sensordata")
+_STATE_FIELDS = ("qpos", "qvel", "ctrl", "qfrc_applied", "xfrc_applied")
+"""The fields the batch keeps in its state rows (its arrays of them are the rows: a write is the state)."""
+_FIELDS = (*_STATE_FIELDS, "xpos", "xquat", "sensordata")
 """The MjData fields the core's copies and the sensors' reads may name."""
 
 
@@ -84,14 +86,6 @@ def _positions(view: np.ndarray, base: np.ndarray) -> np.ndarray | None:
         index = index + (np.arange(n, dtype=np.intp) * (stride // 8)).reshape(shape)
     flat = index.reshape(-1)
     return flat if flat.max(initial=0) < base.size and flat.min(initial=0) >= 0 else None
-
-
-def _compact(index: np.ndarray) -> slice | np.ndarray:
-    """A slice for a run of consecutive positions (numpy copies through a slice for less than through an
-    index array), else the positions."""
-    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
-        return slice(int(index[0]), int(index[0]) + len(index))
-    return index
 
 
 def _field(data: mujoco.MjData, view: np.ndarray) -> tuple[str, np.ndarray] | None:
@@ -191,9 +185,8 @@ class Session:
         self.ins = [self._plan_in(data, cores[0], dst, di, src, si) for dst, di, src, si in ins]
         self.outs = [self._plan_out(data, cores[0], dst, di, src, si) for dst, di, src, si in outs]
         vel = _positions(cores[0]._vel, cores[0].inp_flat) if cores[0]._vel.size else None
-        self.vel = _compact(vel) if vel is not None else None
-        self.row_of = {id(c): k for k, c in enumerate(cores)}
-        self.rows: dict[str, dict[int, int]] = {core_name: self.row_of}
+        self.vel = contiguous(vel) if vel is not None else None
+        self.rows: dict[str, dict[int, int]] = {core_name: {id(c): k for k, c in enumerate(cores)}}
         self.reads: dict[str, Any] = {}
         for name, members in readers.items():
             self.rows[name] = {id(m): k for k, m in enumerate(members)}
@@ -219,7 +212,7 @@ class Session:
         # the derived fields read, as the cores' datas hold them now (the batch's are the stages the
         # forward call made, without the last step's acceleration stage) until the first step
         self.now: dict[str, np.ndarray] = {}
-        self.stepped: set[str] = set()
+        self.stepped = False
 
     # -- plans: each copy as (MjData field, positions there, columns of the module's ports) ---------------
     def _plan_in(self, data: Any, core: Any, dst: Any, di: Any, src: Any, si: Any) -> tuple:
@@ -227,16 +220,16 @@ class Session:
         cols = _positions(src, core.inp_flat)
         if cols is None:
             raise RuntimeError(f"core {core.name!r}: an input copy reads outside its inputs")
-        return (field, _compact(where[_pick(di, len(where))]),
-                _compact(cols[_pick(si, len(cols)) if si is not None else slice(None)]))
+        return (field, contiguous(where[_pick(di, len(where))]),
+                contiguous(cols[_pick(si, len(cols)) if si is not None else slice(None)]))
 
     def _plan_out(self, data: Any, core: Any, dst: Any, di: Any, src: Any, si: Any) -> tuple:
         field, where = _field(data, src) or self._unplanned(src)
         cols = _positions(dst, core.out_flat)
         if cols is None:
             raise RuntimeError(f"core {core.name!r}: an output copy writes outside its outputs")
-        return (field, _compact(where[_pick(si, len(where)) if si is not None else slice(None)]),
-                _compact(cols[_pick(di, len(cols))]))
+        return (field, contiguous(where[_pick(si, len(where)) if si is not None else slice(None)]),
+                contiguous(cols[_pick(di, len(cols))]))
 
     def _plan_sensor(self, data: Any, sensor: Any) -> list[tuple]:
         plan = []
@@ -245,7 +238,7 @@ class Session:
             cols = _positions(port, sensor.out_flat)
             if cols is None:
                 raise RuntimeError(f"sensor {sensor.name!r}: a port outside its outputs")
-            plan.append((field, _compact(where[index]), _compact(cols.reshape(-1))))
+            plan.append((field, contiguous(where[index]), contiguous(cols.reshape(-1))))
         return plan
 
     def _unplanned(self, view: np.ndarray) -> tuple[str, np.ndarray]:
@@ -257,7 +250,7 @@ class Session:
         copied out after the last step), or before the first step the cores' own values."""
         got = self.now.get(field)
         if got is None:
-            if field in self.stepped or field in ("qpos", "qvel", "ctrl", "qfrc_applied", "xfrc_applied"):
+            if self.stepped or field in _STATE_FIELDS:
                 got = self.batch.bind(field).reshape(self.count, -1)
             else:
                 got = np.stack([getattr(c._compiled.data, field).reshape(-1) for c in self.cores])
@@ -326,10 +319,9 @@ class Session:
             for r in exc.ids:
                 failed[at[int(r)]] = RuntimeError(f"core {members[0].name!r}: MuJoCo raised: "
                                                   f"{self.batch.error(int(r))}")
-        for field in ("xpos", "xquat", "sensordata"):
-            if field not in self.stepped:
-                self.stepped.add(field)
-                self.now.pop(field, None)
+        if not self.stepped:  # the derived fields are the batch's from now on
+            self.stepped = True
+            self.now = {f: a for f, a in self.now.items() if f in _STATE_FIELDS}
         now = self._diverged(rows)
         seen = self.seen if every else self.seen[rows]
         for k in () if np.array_equal(now, seen) else np.flatnonzero(now != seen):
