@@ -19,6 +19,7 @@ recorded signals); the served world's own log has the plans, as parameter edits.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -54,7 +55,7 @@ class RemoteMpc(Mpc):
         return snap, int(snap.tick)
 
     def _futures(self, start: Any, ticks: int, branches: int,
-                 params: dict[str, Any]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+                 params: dict[str, Any]) -> tuple[dict[str, np.ndarray], Sequence[Any]]:
         plans = params[f"{self.player}.plan"]
         wire = {**params, f"{self.player}.plan": [np.asarray(p).tolist() for p in plans]}
         try:
@@ -63,8 +64,7 @@ class RemoteMpc(Mpc):
                                      timeout=max(60.0, ticks * branches * 1e-4))
         finally:
             self.world.drop_snapshot(start)
-        self._failure = next((str(s) for s in reply.status if not s.ok), "")
-        return reply.signals, np.array([s.ok for s in reply.status])
+        return reply.signals, reply.status
 
     def _check_world(self) -> None:
         if not self.controls:

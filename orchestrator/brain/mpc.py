@@ -145,12 +145,12 @@ class Mpc:
             return self.world.export_state(), self.world.tick_count
 
     def _futures(self, start: Any, ticks: int, branches: int,
-                 params: dict[str, Any]) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """Run ``branches`` futures from ``start``; (recorded signals, which branches ran to the end)."""
+                 params: dict[str, Any]) -> tuple[dict[str, np.ndarray], Sequence[Any]]:
+        """Run ``branches`` futures from ``start``; (recorded signals, how each branch ended: a
+        `BranchStatus` each)."""
         result = self.batch.run(ticks, branches=branches, starts=start, params=params, record=self.record,
                                 inputs=self._assumed(ticks), keep_states=False)
-        self._failure = next((str(s) for s in result.status if not s.ok), "")
-        return result.signals, np.array([s.ok for s in result.status])
+        return result.signals, result.status
 
     def _assumed(self, ticks: int) -> dict[str, np.ndarray]:
         """The ``assume`` inputs held over ``ticks`` ticks of every future."""
@@ -325,11 +325,10 @@ class Mpc:
         for name in self.randomize:
             params[name] = [draws[k % d][name] for k in range(n * d)]
         ticks = len(prefix) + self.horizon
-        recorded, ok = self._futures(state, ticks, n * d, params)
+        recorded, status = self._futures(state, ticks, n * d, params)
+        ok = np.array([s.ok for s in status])
         if not ok.any():  # nothing to choose from: not a plan of infinite cost
-            why = getattr(self, "_failure", "")
-            raise MpcError(f"mpc: every future of the replan of tick {tick} failed"
-                           + (f"; the first: {why}" if why else ""))
+            raise MpcError(f"mpc: every future of the replan of tick {tick} failed; the first: {status[0]}")
         skip = len(prefix)
         signals = {name: v[:, skip:] for name, v in recorded.items()}
         controls = {ch: np.repeat(rows[:, :, k], d, axis=0) for k, ch in enumerate(self.channels)}
