@@ -246,8 +246,8 @@ def step_each(members: Sequence[FMUModule], t_ns: int, failed: dict[int, BaseExc
         return False
     n = len(members)
     plans = np.array([ctypes.addressof(m._session.stepper.plan) for m in members], dtype=np.uintp)
-    first = np.zeros(n + 1, dtype=np.uintp)
-    codes = np.zeros(n, dtype=np.intc)
+    first = np.zeros(n + 1, dtype=np.uintp)  # no bus copies between members (the lockstep made them), so the
+    codes = np.zeros(n, dtype=np.intc)  # group's copy list and bus are never read: any valid address will do
     none = (_Copy * 1)()
     start = 0
     while start < n:
